@@ -1,0 +1,52 @@
+"""Request dependencies as ``Annotated`` aliases: a session that owns the transaction, the
+settings, storage, and API keys by scope."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from typing import Annotated
+
+from fastapi import Depends, Request
+from sqlalchemy.orm import Session
+
+from app.core import auth
+from app.core.db import get_session_factory
+from app.core.enums import Scope
+from app.core.models import ApiKey
+from app.core.settings import Settings, get_settings
+from app.core.storage import LocalStorage
+
+
+def get_session() -> Iterator[Session]:
+    """One transaction per request: committed when the route returns, rolled back on error."""
+    with get_session_factory().begin() as session:
+        yield session
+
+
+def get_storage(settings: Annotated[Settings, Depends(get_settings)]) -> LocalStorage:
+    return LocalStorage(settings.resolved_storage_dir)
+
+
+SessionDep = Annotated[Session, Depends(get_session)]
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+StorageDep = Annotated[LocalStorage, Depends(get_storage)]
+
+
+def _bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, token = header.partition(" ")
+    return token.strip() if scheme.lower() == "bearer" and token.strip() else None
+
+
+def _require(scope: Scope):  # type: ignore[no-untyped-def]
+    def check(request: Request) -> ApiKey:
+        # A short read-only transaction of its own, so auth never holds the request's.
+        with get_session_factory().begin() as session:
+            return auth.authenticate(session, _bearer(request), scope)
+
+    return check
+
+
+ReadKey = Annotated[ApiKey, Depends(_require(Scope.read))]
+CaptureKey = Annotated[ApiKey, Depends(_require(Scope.capture))]
+AdminKey = Annotated[ApiKey, Depends(_require(Scope.admin))]

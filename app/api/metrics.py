@@ -1,0 +1,89 @@
+"""``/metrics`` in Prometheus text format: HTTP requests and latencies of this process, and
+job counts by kind and state plus job durations, read from the database at scrape time (so
+every API replica reports the same job figures)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Awaitable, Callable, Iterator
+
+from fastapi import APIRouter, Request, Response
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Histogram,
+    generate_latest,
+)
+from prometheus_client.core import GaugeMetricFamily, SummaryMetricFamily
+from prometheus_client.registry import Collector
+from sqlalchemy import func, select
+
+from app.core.db import get_session_factory
+from app.core.models import Job
+
+REGISTRY = CollectorRegistry()
+REQUESTS = Counter(
+    "twindelta_http_requests_total",
+    "HTTP requests by method, route and status",
+    ["method", "route", "status"],
+    registry=REGISTRY,
+)
+LATENCY = Histogram(
+    "twindelta_http_request_duration_seconds",
+    "HTTP request latency by method and route",
+    ["method", "route"],
+    buckets=(0.002, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 10, 60),
+    registry=REGISTRY,
+)
+
+
+class JobCollector(Collector):
+    """Job counts by (kind, state) and finished-job durations by kind, from the database."""
+
+    def collect(self) -> Iterator[GaugeMetricFamily | SummaryMetricFamily]:
+        counts = GaugeMetricFamily(
+            "twindelta_jobs", "Jobs by kind and state", labels=["kind", "state"]
+        )
+        durations = SummaryMetricFamily(
+            "twindelta_job_duration_seconds", "Run time of finished jobs", labels=["kind"]
+        )
+        with get_session_factory().begin() as session:
+            for kind, state, n in session.execute(
+                select(Job.kind, Job.state, func.count()).group_by(Job.kind, Job.state)
+            ):
+                counts.add_metric([str(kind), str(state)], float(n))
+            rows = session.execute(
+                select(Job.kind, Job.started_at, Job.finished_at).where(
+                    Job.started_at.is_not(None), Job.finished_at.is_not(None)
+                )
+            ).all()
+        per_kind: dict[str, list[float]] = {}
+        for kind, started, finished in rows:
+            per_kind.setdefault(str(kind), []).append((finished - started).total_seconds())
+        for kind, values in per_kind.items():
+            durations.add_metric([kind], count_value=len(values), sum_value=sum(values))
+        yield counts
+        yield durations
+
+
+REGISTRY.register(JobCollector())
+router = APIRouter(tags=["health"])
+
+
+@router.get("/metrics", response_class=Response)
+def metrics() -> Response:
+    """Prometheus metrics: requests, latencies, jobs by kind and state, job durations."""
+    return Response(generate_latest(REGISTRY), media_type=CONTENT_TYPE_LATEST)
+
+
+async def observe_request(
+    request: Request, call_next: Callable[[Request], Awaitable[Response]]
+) -> Response:
+    started = time.perf_counter()
+    response = await call_next(request)
+    route = request.scope.get("route")
+    path = getattr(route, "path", "unmatched")
+    LATENCY.labels(request.method, path).observe(time.perf_counter() - started)
+    REQUESTS.labels(request.method, path, str(response.status_code)).inc()
+    return response

@@ -1,0 +1,130 @@
+"""Environments, their snapshot history, comparisons and twin state."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response, status
+
+from app.api.deps import AdminKey, ReadKey, SessionDep
+from app.api.schemas.common import ERRORS
+from app.api.schemas.comparisons import ComparisonCreate, ComparisonRead
+from app.api.schemas.environments import (
+    EnvironmentCreate,
+    EnvironmentRead,
+    InstanceHistory,
+    InstanceRead,
+    PoseRecord,
+    TwinStateRead,
+)
+from app.api.schemas.snapshots import SnapshotRead
+from app.core import comparisons, environments, snapshots, twin
+
+router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create_environment(
+    body: EnvironmentCreate, session: SessionDep, _key: AdminKey
+) -> EnvironmentRead:
+    """Create an environment with its detector classes and reference-marker sheet."""
+    env = environments.create(session, body.name, body.classes, body.reference, body.options)
+    return EnvironmentRead.model_validate(env)
+
+
+@router.get("")
+def list_environments(session: SessionDep, _key: ReadKey) -> list[EnvironmentRead]:
+    """Every environment."""
+    return [EnvironmentRead.model_validate(e) for e in environments.list_all(session)]
+
+
+@router.get("/{environment_id}")
+def get_environment(environment_id: str, session: SessionDep, _key: ReadKey) -> EnvironmentRead:
+    """One environment."""
+    return EnvironmentRead.model_validate(environments.get(session, environment_id))
+
+
+@router.get("/{environment_id}/snapshots")
+def list_snapshots(environment_id: str, session: SessionDep, _key: ReadKey) -> list[SnapshotRead]:
+    """The environment's snapshot history, newest first."""
+    environments.get(session, environment_id)
+    return [
+        SnapshotRead.of(
+            s, snapshots.job_of(session, s.id), snapshots.automatic_comparison_of(session, s.id)
+        )
+        for s in snapshots.history(session, environment_id)
+    ]
+
+
+@router.post("/{environment_id}/comparisons", status_code=status.HTTP_202_ACCEPTED)
+def create_comparison(
+    environment_id: str,
+    body: ComparisonCreate,
+    session: SessionDep,
+    response: Response,
+    _key: AdminKey,
+) -> ComparisonRead:
+    """Compare two reconstructed snapshots (again) with other options."""
+    environments.get(session, environment_id)
+    comparison = comparisons.create(
+        session,
+        environment_id,
+        snapshots.get(session, body.before),
+        snapshots.get(session, body.after),
+        body.options,
+    )
+    response.headers["Location"] = f"/v1/jobs/{comparison.job_id}"
+    return ComparisonRead.of(comparison)
+
+
+@router.get("/{environment_id}/comparisons")
+def list_comparisons(
+    environment_id: str, session: SessionDep, _key: ReadKey
+) -> list[ComparisonRead]:
+    """Every comparison of the environment, newest first."""
+    environments.get(session, environment_id)
+    return [ComparisonRead.of(c) for c in comparisons.list_for(session, environment_id)]
+
+
+@router.get("/{environment_id}/state")
+def get_state(environment_id: str, session: SessionDep, _key: ReadKey) -> TwinStateRead:
+    """The twin as it stands: every instance present, with its current pose."""
+    environments.get(session, environment_id)
+    return TwinStateRead(
+        environment=environment_id,
+        objects=[
+            InstanceRead(
+                instance_id=i.id,
+                object=i.object_name,
+                object_id=i.object_id,
+                pose=i.pose,
+                pose_quality=i.pose_quality,
+                since_snapshot=i.since_snapshot_id,
+                created_snapshot=i.created_snapshot_id,
+                created_at=i.created_at,
+            )
+            for i in twin.current(session, environment_id)
+        ],
+    )
+
+
+@router.get("/{environment_id}/objects/{instance_id}/history")
+def get_instance_history(
+    environment_id: str, instance_id: str, session: SessionDep, _key: ReadKey
+) -> InstanceHistory:
+    """Every pose an instance has had, with the snapshot that saw it."""
+    instance, poses = twin.history(session, environment_id, instance_id)
+    return InstanceHistory(
+        instance_id=instance.id,
+        object=instance.object_name,
+        created_snapshot=instance.created_snapshot_id,
+        closed_snapshot=instance.closed_snapshot_id,
+        poses=[
+            PoseRecord(
+                snapshot=p.snapshot_id,
+                comparison=p.comparison_id,
+                change_type=p.change_type,
+                pose=p.pose,
+                at=p.created_at,
+            )
+            for p in poses
+        ],
+    )

@@ -1,0 +1,39 @@
+"""API keys (admin): create (the token is shown once), list, revoke."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, status
+from sqlalchemy import select
+
+from app.api.deps import AdminKey, SessionDep
+from app.api.schemas.common import ERRORS
+from app.api.schemas.keys import KeyCreate, KeyCreated, KeyRead
+from app.core import auth
+from app.core.errors import NotFound
+from app.core.models import ApiKey, utcnow
+
+router = APIRouter(prefix="/keys", tags=["keys"], responses=ERRORS)
+
+
+@router.post("", status_code=status.HTTP_201_CREATED)
+def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreated:
+    """Create a key with scopes; the response is the only time the token is shown."""
+    row, token = auth.create_key(session, body.name, [s.value for s in body.scopes])
+    return KeyCreated(**KeyRead.model_validate(row).model_dump(), key=token)
+
+
+@router.get("")
+def list_keys(session: SessionDep, _key: AdminKey) -> list[KeyRead]:
+    """Every key, without secrets."""
+    rows = session.scalars(select(ApiKey).order_by(ApiKey.created_at)).all()
+    return [KeyRead.model_validate(r) for r in rows]
+
+
+@router.delete("/{key_id}")
+def revoke_key(key_id: str, session: SessionDep, _key: AdminKey) -> KeyRead:
+    """Revoke a key; it stops working at once."""
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise NotFound(f"key {key_id} not found")
+    row.revoked_at = row.revoked_at or utcnow()
+    return KeyRead.model_validate(row)

@@ -1,0 +1,61 @@
+"""The object library (admin to change, read to list)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, File, Form, Response, UploadFile, status
+
+from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
+from app.api.schemas.common import ERRORS
+from app.api.schemas.objects import ObjectRead
+from app.core import objects
+
+router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
+
+
+@router.post("", status_code=status.HTTP_202_ACCEPTED)
+def create_object(
+    file: Annotated[UploadFile, File(description=".ply .obj .stl .glb .off .pcd")],
+    name: Annotated[str, Form(description="the detector class name")],
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+    response: Response,
+    _key: AdminKey,
+    units: Annotated[str, Form(description="m, cm or mm")] = "m",
+    symmetry: Annotated[str, Form(description="auto, none, or a JSON spec")] = "auto",
+) -> ObjectRead:
+    """Add a model to the library; a job samples it, measures its diameter and detects its
+    symmetry (poll the job, or GET the object until `state` is `ready`)."""
+    obj, job = objects.create(
+        session,
+        storage,
+        name=name,
+        filename=file.filename or "",
+        source=file.file,
+        units=units,
+        symmetry=symmetry,
+        max_bytes=settings.max_file_bytes,
+    )
+    response.headers["Location"] = f"/v1/jobs/{job.id}"
+    return ObjectRead.of(obj, job)
+
+
+@router.get("")
+def list_objects(session: SessionDep, _key: ReadKey) -> list[ObjectRead]:
+    """Every live library object, by name."""
+    return [ObjectRead.of(o, objects.latest_job(session, o.id)) for o in objects.list_live(session)]
+
+
+@router.get("/{object_id}")
+def get_object(object_id: str, session: SessionDep, _key: ReadKey) -> ObjectRead:
+    """One library object with its diameter and symmetry."""
+    obj = objects.get(session, object_id)
+    return ObjectRead.of(obj, objects.latest_job(session, obj.id))
+
+
+@router.delete("/{object_id}")
+def delete_object(object_id: str, session: SessionDep, _key: AdminKey) -> ObjectRead:
+    """Remove an object from the library; past comparisons keep their records."""
+    return ObjectRead.of(objects.delete(session, object_id), None)

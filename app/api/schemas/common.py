@@ -1,0 +1,38 @@
+"""Shapes shared by several resources."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from pydantic import AfterValidator, BaseModel, ConfigDict
+
+
+def _check_pose(value: list[list[float]]) -> list[list[float]]:
+    if len(value) != 4 or any(len(row) != 4 for row in value):
+        raise ValueError("a pose is a 4×4 row-major nested list")
+    last = value[3]
+    if any(abs(a - b) > 1e-6 for a, b in zip(last, (0.0, 0.0, 0.0, 1.0), strict=True)):
+        raise ValueError("a pose's last row must be [0, 0, 0, 1]")
+    return value
+
+
+Pose = Annotated[list[list[float]], AfterValidator(_check_pose)]
+"""4×4 row-major, metres; ``env_from_object`` maps object-model coordinates into the
+environment frame."""
+
+
+class ErrorOut(BaseModel):
+    error: str
+    detail: str
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(from_attributes=True)
+
+
+ERRORS = {
+    401: {"model": ErrorOut, "description": "missing or unknown API key"},
+    403: {"model": ErrorOut, "description": "the key lacks the scope"},
+    404: {"model": ErrorOut, "description": "not found"},
+    422: {"model": ErrorOut, "description": "invalid input"},
+}

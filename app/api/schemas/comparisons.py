@@ -1,0 +1,79 @@
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel, Field
+
+from app.api.schemas.common import Model, Pose
+from app.core.enums import ComparisonState
+from app.core.models import Comparison
+
+
+class ComparisonCreate(BaseModel):
+    before: str = Field(description="snapshot id")
+    after: str = Field(description="snapshot id")
+    options: dict[str, Any] | None = Field(
+        default=None, description='e.g. {"threshold": {"kind": "mean_std", "k": 1.0}}'
+    )
+
+
+class ChangeRead(Model):
+    id: str
+    type: str
+    object: str | None
+    instance_id: str | None
+    pose: Pose | None
+    previous_pose: Pose | None
+    replaced_object: str | None
+    identification: dict[str, Any] | None
+    cluster: dict[str, Any] | None
+    pose_quality: dict[str, Any] | None
+
+
+class ComparisonRead(BaseModel):
+    id: str
+    environment: str
+    before: str
+    after: str
+    job: str
+    state: ComparisonState
+    automatic: bool
+    created_at: datetime
+    completed_at: datetime | None
+    options: dict[str, Any]
+    distances: dict[str, Any]
+    changes: list[ChangeRead]
+    clusters: list[dict[str, Any]]
+
+    @classmethod
+    def of(cls, c: Comparison) -> ComparisonRead:
+        return cls(
+            id=c.id,
+            environment=c.environment_id,
+            before=c.before_id,
+            after=c.after_id,
+            job=c.job_id,
+            state=c.state,
+            automatic=c.automatic,
+            created_at=c.created_at,
+            completed_at=c.completed_at,
+            options=c.options,
+            distances=c.distances,
+            changes=[
+                ChangeRead(
+                    id=ch.id,
+                    type=ch.type,
+                    object=ch.object_name,
+                    instance_id=ch.instance_id,
+                    pose=ch.pose,
+                    previous_pose=ch.previous_pose,
+                    replaced_object=ch.replaced_object,
+                    identification=ch.identification,
+                    cluster=ch.cluster,
+                    pose_quality=ch.pose_quality,
+                )
+                for ch in c.changes
+            ],
+            clusters=c.clusters,
+        )

@@ -1,0 +1,59 @@
+from __future__ import annotations
+
+from datetime import datetime
+from typing import Any
+
+from pydantic import BaseModel
+
+from app.api.schemas.common import Model
+from app.api.schemas.jobs import JobRead
+from app.core.enums import SnapshotState
+from app.core.models import Comparison, Job, Snapshot
+
+
+class SnapshotRead(Model):
+    id: str
+    environment: str
+    seq: int
+    state: SnapshotState
+    created_at: datetime
+    reconstructed_at: datetime | None
+    n_images: int
+    n_detections: int
+    upload_bytes: int
+    has_cameras: bool
+    quality: dict[str, Any]
+    job: str | None
+    comparison: str | None
+    links: dict[str, str]
+
+    @classmethod
+    def of(cls, snap: Snapshot, job: Job | None, comparison: Comparison | None) -> SnapshotRead:
+        links = {"self": f"/v1/snapshots/{snap.id}"}
+        if snap.pointcloud_key:
+            links["pointcloud"] = f"/v1/snapshots/{snap.id}/pointcloud"
+        if job:
+            links["job"] = f"/v1/jobs/{job.id}"
+        if comparison:
+            links["comparison"] = f"/v1/comparisons/{comparison.id}"
+        return cls(
+            id=snap.id,
+            environment=snap.environment_id,
+            seq=snap.seq,
+            state=snap.state,
+            created_at=snap.created_at,
+            reconstructed_at=snap.reconstructed_at,
+            n_images=snap.n_images,
+            n_detections=snap.n_detections,
+            upload_bytes=snap.upload_bytes,
+            has_cameras=snap.has_cameras,
+            quality=snap.quality or {},
+            job=job.id if job else None,
+            comparison=comparison.id if comparison else None,
+            links=links,
+        )
+
+
+class SnapshotAccepted(BaseModel):
+    snapshot: SnapshotRead
+    job: JobRead

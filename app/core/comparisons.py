@@ -1,0 +1,80 @@
+"""Comparisons of two snapshots of one environment: created automatically after a
+reconstruction, or on request with other options."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.core import jobs
+from app.core.enums import JobKind, SnapshotState
+from app.core.errors import Conflict, InvalidInput, NotFound
+from app.core.models import Comparison, Snapshot, new_id
+
+TASK = "comparison.run"
+
+
+def create(
+    session: Session,
+    environment_id: str,
+    before: Snapshot,
+    after: Snapshot,
+    options: dict[str, Any] | None,
+    *,
+    automatic: bool = False,
+) -> Comparison:
+    """A queued comparison and its job; 422/409 when the snapshots cannot be compared."""
+    for role, snap in (("before", before), ("after", after)):
+        if snap.environment_id != environment_id:
+            raise InvalidInput(f"{role}: snapshot {snap.id} belongs to another environment")
+        if snap.state != SnapshotState.reconstructed:
+            raise Conflict(
+                f"{role}: snapshot {snap.id} is {snap.state}, not reconstructed",
+                code="SnapshotNotReconstructed",
+            )
+    if before.id == after.id:
+        raise InvalidInput("before and after are the same snapshot")
+    options = dict(options or {})
+    preset = str(options.pop("preset", "default"))
+    comparison_id = new_id()
+    job = jobs.create(
+        session,
+        JobKind.comparison,
+        TASK,
+        preset=preset,
+        options=options,
+        environment_id=environment_id,
+        comparison_id=comparison_id,
+    )
+    comparison = Comparison(
+        id=comparison_id,
+        environment_id=environment_id,
+        before_id=before.id,
+        after_id=after.id,
+        automatic=automatic,
+        options={"preset": preset, **options},
+        job_id=job.id,
+    )
+    session.add(comparison)
+    session.flush()
+    return comparison
+
+
+def get(session: Session, comparison_id: str) -> Comparison:
+    comparison = session.get(Comparison, comparison_id)
+    if comparison is None:
+        raise NotFound(f"comparison {comparison_id} not found")
+    return comparison
+
+
+def list_for(session: Session, environment_id: str) -> list[Comparison]:
+    """Every comparison of an environment, newest first."""
+    return list(
+        session.scalars(
+            select(Comparison)
+            .where(Comparison.environment_id == environment_id)
+            .order_by(Comparison.created_at.desc())
+        ).all()
+    )

@@ -1,0 +1,52 @@
+"""Domain errors. Each carries its HTTP status; one handler renders them as
+``{"error": code, "detail": text}``."""
+
+from __future__ import annotations
+
+
+class DomainError(Exception):
+    """Base of every error a caller can act on."""
+
+    status_code: int = 400
+    code: str = "BadRequest"
+
+    def __init__(self, detail: str, *, code: str | None = None) -> None:
+        super().__init__(detail)
+        self.detail = detail
+        if code is not None:
+            self.code = code
+
+
+class InvalidInput(DomainError):
+    status_code = 422
+    code = "InvalidInput"
+
+
+class NotFound(DomainError):
+    status_code = 404
+    code = "NotFound"
+
+
+class Conflict(DomainError):
+    status_code = 409
+    code = "Conflict"
+
+
+class Unauthorized(DomainError):
+    status_code = 401
+    code = "Unauthorized"
+
+
+class Forbidden(DomainError):
+    status_code = 403
+    code = "Forbidden"
+
+
+class PayloadTooLarge(DomainError):
+    status_code = 413
+    code = "PayloadTooLarge"
+
+
+class UnsupportedMedia(DomainError):
+    status_code = 415
+    code = "UnsupportedMediaType"

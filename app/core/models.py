@@ -1,0 +1,337 @@
+"""SQLAlchemy 2 models: one table per noun of the contract.
+
+Times are timezone-aware UTC. JSON columns hold the contract's nested shapes (poses as 4×4
+nested lists in metres, quality figures, identification tables) verbatim.
+"""
+
+from __future__ import annotations
+
+import uuid
+from datetime import UTC, datetime
+from typing import Any
+
+from sqlalchemy import (
+    JSON,
+    Boolean,
+    DateTime,
+    Float,
+    ForeignKey,
+    Index,
+    Integer,
+    String,
+    Text,
+    UniqueConstraint,
+)
+from sqlalchemy.orm import Mapped, mapped_column, relationship
+
+from app.core.db import Base
+from app.core.enums import (
+    ComparisonState,
+    DeliveryState,
+    JobKind,
+    JobState,
+    ObjectState,
+    SnapshotState,
+)
+
+
+def new_id() -> str:
+    return str(uuid.uuid4())
+
+
+def utcnow() -> datetime:
+    return datetime.now(UTC)
+
+
+Json = dict[str, Any]
+UtcDateTime = DateTime(timezone=True)
+
+
+class ApiKey(Base):
+    __tablename__ = "api_keys"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200))
+    prefix: Mapped[str] = mapped_column(String(16), index=True)
+    key_hash: Mapped[str] = mapped_column(String(64), unique=True)
+    scopes: Mapped[list[str]] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    last_used_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    revoked_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class Environment(Base):
+    __tablename__ = "environments"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200), unique=True)
+    classes: Mapped[list[str]] = mapped_column(JSON)
+    reference: Mapped[Json | None] = mapped_column(JSON)
+    options: Mapped[Json] = mapped_column(JSON, default=dict)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class LibraryObject(Base):
+    __tablename__ = "library_objects"
+    __table_args__ = (
+        Index(
+            "uq_library_objects_live_name",
+            "name",
+            unique=True,
+            postgresql_where="deleted_at IS NULL",
+            sqlite_where="deleted_at IS NULL",
+        ),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    name: Mapped[str] = mapped_column(String(200))
+    state: Mapped[ObjectState] = mapped_column(String(20), default=ObjectState.processing)
+    units: Mapped[str] = mapped_column(String(4), default="m")
+    symmetry_requested: Mapped[Json] = mapped_column(JSON, default=dict)
+    symmetry: Mapped[Json | None] = mapped_column(JSON)
+    diameter_m: Mapped[float | None] = mapped_column(Float)
+    n_points: Mapped[int | None] = mapped_column(Integer)
+    filename: Mapped[str] = mapped_column(String(255))
+    file_key: Mapped[str] = mapped_column(String(500))
+    artifacts_key: Mapped[str | None] = mapped_column(String(500))
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    deleted_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class Snapshot(Base):
+    __tablename__ = "snapshots"
+    __table_args__ = (
+        UniqueConstraint("environment_id", "seq", name="uq_snapshots_env_seq"),
+        UniqueConstraint("environment_id", "idempotency_key", name="uq_snapshots_idempotency"),
+    )
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    environment_id: Mapped[str] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    seq: Mapped[int] = mapped_column(Integer)
+    state: Mapped[SnapshotState] = mapped_column(String(20), default=SnapshotState.uploaded)
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    request_digest: Mapped[str | None] = mapped_column(String(64))
+    storage_prefix: Mapped[str] = mapped_column(String(500))
+    n_images: Mapped[int] = mapped_column(Integer, default=0)
+    n_detections: Mapped[int] = mapped_column(Integer, default=0)
+    upload_bytes: Mapped[int] = mapped_column(Integer, default=0)
+    has_cameras: Mapped[bool] = mapped_column(Boolean, default=False)
+    quality: Mapped[Json] = mapped_column(JSON, default=dict)
+    pointcloud_key: Mapped[str | None] = mapped_column(String(500))
+    cameras_key: Mapped[str | None] = mapped_column(String(500))
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    reconstructed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+    images: Mapped[list[SnapshotImage]] = relationship(
+        back_populates="snapshot", order_by="SnapshotImage.name", cascade="all, delete-orphan"
+    )
+
+
+class SnapshotImage(Base):
+    """One uploaded photo and its detections (recorded by the worker's ingest stage)."""
+
+    __tablename__ = "snapshot_images"
+    __table_args__ = (UniqueConstraint("snapshot_id", "name", name="uq_snapshot_images_name"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    snapshot_id: Mapped[str] = mapped_column(
+        ForeignKey("snapshots.id", ondelete="CASCADE"), index=True
+    )
+    name: Mapped[str] = mapped_column(String(255))
+    file_key: Mapped[str] = mapped_column(String(500))
+    labels_key: Mapped[str | None] = mapped_column(String(500))
+    width: Mapped[int] = mapped_column(Integer)
+    height: Mapped[int] = mapped_column(Integer)
+    size_bytes: Mapped[int] = mapped_column(Integer)
+    detections: Mapped[list[Json]] = mapped_column(JSON, default=list)
+    verified_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+    snapshot: Mapped[Snapshot] = relationship(back_populates="images")
+
+
+class Job(Base):
+    """The single truth for a unit of background work: state, stage, progress, error."""
+
+    __tablename__ = "jobs"
+    __table_args__ = (Index("ix_jobs_state_kind", "state", "kind"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    kind: Mapped[JobKind] = mapped_column(String(20))
+    task_name: Mapped[str] = mapped_column(String(100))
+    state: Mapped[JobState] = mapped_column(String(20), default=JobState.queued)
+    stage: Mapped[str | None] = mapped_column(String(100))
+    progress: Mapped[float] = mapped_column(Float, default=0.0)
+    preset: Mapped[str] = mapped_column(String(50), default="default")
+    options: Mapped[Json] = mapped_column(JSON, default=dict)
+    result: Mapped[Json] = mapped_column(JSON, default=dict)
+    error_code: Mapped[str | None] = mapped_column(String(100))
+    error_detail: Mapped[str | None] = mapped_column(Text)
+    cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    sends: Mapped[int] = mapped_column(Integer, default=0)
+    worker: Mapped[str | None] = mapped_column(String(200))
+    environment_id: Mapped[str | None] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    snapshot_id: Mapped[str | None] = mapped_column(
+        ForeignKey("snapshots.id", ondelete="CASCADE"), index=True
+    )
+    comparison_id: Mapped[str | None] = mapped_column(String(36), index=True)
+    object_id: Mapped[str | None] = mapped_column(
+        ForeignKey("library_objects.id", ondelete="CASCADE"), index=True
+    )
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    enqueued_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    started_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class Comparison(Base):
+    __tablename__ = "comparisons"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    environment_id: Mapped[str] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    before_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id", ondelete="CASCADE"))
+    after_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id", ondelete="CASCADE"))
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id"))
+    automatic: Mapped[bool] = mapped_column(Boolean, default=False)
+    state: Mapped[ComparisonState] = mapped_column(String(20), default=ComparisonState.queued)
+    options: Mapped[Json] = mapped_column(JSON, default=dict)
+    distances: Mapped[Json] = mapped_column(JSON, default=dict)
+    clusters: Mapped[list[Json]] = mapped_column(JSON, default=list)
+    applied_to_state: Mapped[bool] = mapped_column(Boolean, default=False)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    completed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+    changes: Mapped[list[Change]] = relationship(
+        back_populates="comparison", order_by="Change.position", cascade="all, delete-orphan"
+    )
+
+
+class Change(Base):
+    __tablename__ = "changes"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    comparison_id: Mapped[str] = mapped_column(
+        ForeignKey("comparisons.id", ondelete="CASCADE"), index=True
+    )
+    position: Mapped[int] = mapped_column(Integer)
+    type: Mapped[str] = mapped_column(String(20))
+    object_name: Mapped[str | None] = mapped_column(String(200))
+    instance_id: Mapped[str | None] = mapped_column(String(36))
+    pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    previous_pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    replaced_object: Mapped[str | None] = mapped_column(String(200))
+    identification: Mapped[Json | None] = mapped_column(JSON)
+    cluster: Mapped[Json | None] = mapped_column(JSON)
+    pose_quality: Mapped[Json | None] = mapped_column(JSON)
+
+    comparison: Mapped[Comparison] = relationship(back_populates="changes")
+
+
+class TwinInstance(Base):
+    """One physical object instance in an environment's twin, open until removed."""
+
+    __tablename__ = "twin_instances"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    environment_id: Mapped[str] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    object_name: Mapped[str] = mapped_column(String(200))
+    object_id: Mapped[str | None] = mapped_column(
+        ForeignKey("library_objects.id", ondelete="SET NULL")
+    )
+    pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    pose_quality: Mapped[Json | None] = mapped_column(JSON)
+    since_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
+    created_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
+    closed_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class InstancePose(Base):
+    """The history of an instance: one row per pose it has had."""
+
+    __tablename__ = "instance_poses"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    instance_id: Mapped[str] = mapped_column(
+        ForeignKey("twin_instances.id", ondelete="CASCADE"), index=True
+    )
+    snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
+    comparison_id: Mapped[str | None] = mapped_column(ForeignKey("comparisons.id"))
+    change_type: Mapped[str] = mapped_column(String(20))
+    pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class WebhookSubscription(Base):
+    __tablename__ = "webhook_subscriptions"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    url: Mapped[str] = mapped_column(String(2000))
+    event_types: Mapped[list[str]] = mapped_column(JSON)
+    environment_id: Mapped[str | None] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    secret: Mapped[str] = mapped_column(String(200))
+    active: Mapped[bool] = mapped_column(Boolean, default=True)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class Event(Base):
+    """A CloudEvent, written in the same transaction as the state change that causes it."""
+
+    __tablename__ = "events"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    type: Mapped[str] = mapped_column(String(100), index=True)
+    environment_id: Mapped[str | None] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    subject: Mapped[str | None] = mapped_column(String(200))
+    data: Mapped[Json] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class Delivery(Base):
+    """One event to one subscription; retried on a schedule, every attempt logged."""
+
+    __tablename__ = "deliveries"
+    __table_args__ = (Index("ix_deliveries_state_next", "state", "next_attempt_at"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    subscription_id: Mapped[str] = mapped_column(
+        ForeignKey("webhook_subscriptions.id", ondelete="CASCADE"), index=True
+    )
+    event_id: Mapped[str] = mapped_column(ForeignKey("events.id", ondelete="CASCADE"), index=True)
+    state: Mapped[DeliveryState] = mapped_column(String(20), default=DeliveryState.pending)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    last_status_code: Mapped[int | None] = mapped_column(Integer)
+    last_error: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+
+
+class DeliveryAttempt(Base):
+    __tablename__ = "delivery_attempts"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    delivery_id: Mapped[str] = mapped_column(
+        ForeignKey("deliveries.id", ondelete="CASCADE"), index=True
+    )
+    number: Mapped[int] = mapped_column(Integer)
+    attempted_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    status_code: Mapped[int | None] = mapped_column(Integer)
+    latency_ms: Mapped[float | None] = mapped_column(Float)
+    response_excerpt: Mapped[str | None] = mapped_column(Text)
+    error: Mapped[str | None] = mapped_column(Text)

@@ -1,0 +1,140 @@
+"""The object library: models of the things that can appear in an environment. Uploading
+stores the file and queues a job that samples the model, measures it and detects its
+symmetry (worker side)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import PurePosixPath
+from typing import Any, BinaryIO
+
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.core import jobs
+from app.core.enums import JobKind
+from app.core.errors import Conflict, InvalidInput, NotFound, PayloadTooLarge
+from app.core.models import Job, LibraryObject, new_id, utcnow
+from app.core.storage import LocalStorage
+
+TASK = "object.prepare"
+MODEL_SUFFIXES = {".ply", ".obj", ".stl", ".glb", ".off", ".pcd"}
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
+SYMMETRY_KINDS = {"auto", "none", "discrete", "continuous"}
+
+
+def parse_symmetry(value: str | None) -> dict[str, Any]:
+    """``auto`` (default), ``none`` or a JSON spec such as
+    ``{"kind": "continuous", "axis": [0, 0, 1]}`` or
+    ``{"kind": "discrete", "rotations": [<4×4>, ...]}``."""
+    if value is None or value.strip() in {"", "auto"}:
+        return {"kind": "auto"}
+    if value.strip() == "none":
+        return {"kind": "none"}
+    try:
+        spec = json.loads(value)
+    except json.JSONDecodeError as exc:
+        raise InvalidInput(f"symmetry: expected auto, none or a JSON object ({exc.msg})") from exc
+    if not isinstance(spec, dict) or spec.get("kind") not in SYMMETRY_KINDS:
+        raise InvalidInput(f"symmetry: 'kind' must be one of {sorted(SYMMETRY_KINDS)}")
+    if spec["kind"] == "continuous":
+        axis = spec.get("axis")
+        if not (isinstance(axis, list) and len(axis) == 3 and any(float(a) for a in axis)):
+            raise InvalidInput("symmetry.axis: a non-zero 3-vector in the model frame")
+    if spec["kind"] == "discrete" and not isinstance(spec.get("rotations"), list):
+        raise InvalidInput("symmetry.rotations: a list of 4×4 matrices")
+    return spec
+
+
+def create(
+    session: Session,
+    storage: LocalStorage,
+    *,
+    name: str,
+    filename: str,
+    source: BinaryIO,
+    units: str,
+    symmetry: str | None,
+    max_bytes: int,
+) -> tuple[LibraryObject, Job]:
+    """Store the model file and queue its preparation. 422 for a bad name, unit, suffix,
+    symmetry or an empty file; 413 past ``max_bytes``; 409 when the name is taken."""
+    name = name.strip()
+    if not name:
+        raise InvalidInput("name: the detector class name of the object")
+    if units not in UNITS:
+        raise InvalidInput(f"units: {units!r} is not one of m, cm, mm")
+    suffix = PurePosixPath(filename or "").suffix.lower()
+    if suffix not in MODEL_SUFFIXES:
+        raise InvalidInput(
+            f"file: {filename!r} is not a model file ({', '.join(sorted(MODEL_SUFFIXES))})"
+        )
+    spec = parse_symmetry(symmetry)
+    if session.scalar(
+        select(LibraryObject.id).where(
+            LibraryObject.name == name, LibraryObject.deleted_at.is_(None)
+        )
+    ):
+        raise Conflict(f"an object named {name!r} already exists", code="ObjectExists")
+    object_id = new_id()
+    key = f"objects/{object_id}/model{suffix}"
+    try:
+        blob = storage.write_stream(key, source, max_bytes=max_bytes)
+    except OverflowError as exc:
+        storage.delete_prefix(f"objects/{object_id}")
+        raise PayloadTooLarge(f"file: larger than {max_bytes} bytes") from exc
+    if blob.size_bytes == 0:
+        storage.delete_prefix(f"objects/{object_id}")
+        raise InvalidInput(f"file: {filename!r} is empty")
+    obj = LibraryObject(
+        id=object_id,
+        name=name,
+        units=units,
+        symmetry_requested=spec,
+        filename=PurePosixPath(filename).name,
+        file_key=key,
+        size_bytes=blob.size_bytes,
+    )
+    session.add(obj)
+    session.flush()
+    job = jobs.create(session, JobKind.object, TASK, object_id=object_id)
+    return obj, job
+
+
+def get(session: Session, object_id: str) -> LibraryObject:
+    obj = session.get(LibraryObject, object_id)
+    if obj is None or obj.deleted_at is not None:
+        raise NotFound(f"object {object_id} not found")
+    return obj
+
+
+def list_live(session: Session) -> list[LibraryObject]:
+    return list(
+        session.scalars(
+            select(LibraryObject)
+            .where(LibraryObject.deleted_at.is_(None))
+            .order_by(LibraryObject.name)
+        ).all()
+    )
+
+
+def by_names(session: Session, names: list[str]) -> dict[str, LibraryObject]:
+    rows = session.scalars(
+        select(LibraryObject).where(
+            LibraryObject.name.in_(names), LibraryObject.deleted_at.is_(None)
+        )
+    ).all()
+    return {r.name: r for r in rows}
+
+
+def delete(session: Session, object_id: str) -> LibraryObject:
+    """Soft delete: history that refers to the object stays readable."""
+    obj = get(session, object_id)
+    obj.deleted_at = utcnow()
+    return obj
+
+
+def latest_job(session: Session, object_id: str) -> Job | None:
+    return session.scalar(
+        select(Job).where(Job.object_id == object_id).order_by(Job.created_at.desc()).limit(1)
+    )

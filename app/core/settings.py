@@ -1,0 +1,90 @@
+"""Service settings: environment variables prefixed ``TWINDELTA_``.
+
+The embedded default needs none of them: SQLite, a file-system broker and local storage under
+``TWINDELTA_DATA_DIR``. Production sets ``TWINDELTA_DATABASE_URL`` (PostgreSQL) and
+``TWINDELTA_BROKER_URL`` (Redis).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    """Every knob of the service; read once per process (see :func:`get_settings`)."""
+
+    model_config = SettingsConfigDict(env_prefix="TWINDELTA_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("twindelta-data"))
+    database_url: str | None = None
+    broker_url: str | None = None
+    storage_dir: Path | None = None
+    bootstrap_admin_key: str | None = None
+
+    # Ingest limits: a request over any of them gets 413 and leaves nothing behind.
+    max_upload_files: int = 2000
+    max_upload_bytes: int = 4 * 1024**3
+    max_file_bytes: int = 200 * 1024**2
+    max_image_pixels: int = 50_000_000
+    max_detection_lines: int = 10_000
+    min_images: int = 3
+
+    # Jobs: a running job whose heartbeat is older than this is failed by the sweeper; a
+    # queued job older than ``requeue_after_s`` is sent again (a lost broker message).
+    heartbeat_timeout_s: float = 120.0
+    heartbeat_interval_s: float = 10.0
+    max_job_attempts: int = 3
+    requeue_after_s: float = 120.0
+    sweep_interval_s: float = 30.0
+    progress_interval_s: float = 2.0
+    task_time_limit_s: int = 3 * 3600
+    broker_visibility_timeout_s: int = 6 * 3600
+
+    # Webhooks: retry schedule in seconds after each failed attempt (about a day in total).
+    webhook_retry_schedule_s: list[float] = Field(
+        default=[5, 30, 120, 600, 1800, 3600, 7200, 14400, 28800, 28800]
+    )
+    webhook_timeout_s: float = 10.0
+    webhook_allowed_networks: list[str] = Field(default_factory=list)
+
+    @field_validator("bootstrap_admin_key")
+    @classmethod
+    def _refuse_weak_key(cls, value: str | None) -> str | None:
+        if value is not None and (len(value) < 16 or value.lower() in {"changeme", "change-me"}):
+            raise ValueError("TWINDELTA_BOOTSTRAP_ADMIN_KEY must be at least 16 characters")
+        return value
+
+    @property
+    def resolved_database_url(self) -> str:
+        """The database URL; default an SQLite file in ``data_dir``."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'twindelta.db').resolve()}"
+
+    @property
+    def resolved_broker_url(self) -> str:
+        """The broker URL; default Kombu's file-system transport (no server)."""
+        return self.broker_url or "filesystem://"
+
+    @property
+    def is_embedded_broker(self) -> bool:
+        return self.resolved_broker_url.startswith("filesystem://")
+
+    @property
+    def broker_dir(self) -> Path:
+        """Folder of the file-system broker's messages (embedded mode only)."""
+        return (self.data_dir / "broker").resolve()
+
+    @property
+    def resolved_storage_dir(self) -> Path:
+        return (self.storage_dir or self.data_dir / "files").resolve()
+
+
+@lru_cache(maxsize=1)
+def get_settings() -> Settings:
+    """The process-wide settings, read from the environment once."""
+    return Settings()

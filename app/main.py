@@ -1,0 +1,87 @@
+"""The FastAPI application: ``create_app()`` wires routers, one error handler and the
+lifespan (bootstrap admin key)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from app.api import metrics as metrics_routes
+from app.api.routes import (
+    comparisons,
+    environments,
+    health,
+    jobs,
+    keys,
+    objects,
+    snapshots,
+    webhooks,
+)
+from app.core import auth
+from app.core.db import get_session_factory
+from app.core.errors import DomainError
+from app.core.settings import get_settings
+
+log = logging.getLogger("twindelta")
+
+API_DESCRIPTION = """
+twindelta keeps a factory's digital twin in step with the shop floor. Capture stations
+upload photo sets with YOLO detections; workers reconstruct a point cloud, compare it with the
+environment's previous snapshot, identify which library objects were added, removed, moved or
+swapped, estimate their 6-DoF poses (4×4 `env_from_object`, metres) and notify the twin
+platform by webhook. Every endpoint except `/healthz` and `/readyz` needs
+`Authorization: Bearer <api key>`. Errors are `{"error": code, "detail": text}`.
+"""
+
+
+@asynccontextmanager
+async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+    settings = get_settings()
+    if settings.bootstrap_admin_key:
+        with get_session_factory().begin() as session:
+            if auth.bootstrap_admin_key(session, settings.bootstrap_admin_key):
+                log.info("created the bootstrap admin key")
+    yield
+
+
+def _error(status: int, code: str, detail: str) -> JSONResponse:
+    return JSONResponse(status_code=status, content={"error": code, "detail": detail})
+
+
+def create_app() -> FastAPI:
+    app = FastAPI(
+        title="twindelta",
+        version="0.1.0",
+        description=API_DESCRIPTION,
+        lifespan=lifespan,
+    )
+
+    @app.exception_handler(DomainError)
+    async def domain_error(_request: Request, exc: DomainError) -> JSONResponse:
+        return _error(exc.status_code, exc.code, exc.detail)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        parts = []
+        for err in exc.errors():
+            where = ".".join(str(p) for p in err.get("loc", ()) if p != "body")
+            parts.append(f"{where}: {err.get('msg')}" if where else str(err.get("msg")))
+        return _error(422, "InvalidInput", "; ".join(parts) or "invalid request")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        codes = {404: "NotFound", 405: "MethodNotAllowed", 401: "Unauthorized"}
+        return _error(exc.status_code, codes.get(exc.status_code, "HTTPError"), str(exc.detail))
+
+    app.middleware("http")(metrics_routes.observe_request)
+    app.include_router(health.router)
+    app.include_router(metrics_routes.router)
+    for module in (keys, objects, environments, snapshots, jobs, comparisons, webhooks):
+        app.include_router(module.router, prefix="/v1")
+    return app

@@ -1,0 +1,390 @@
+"""Symmetry of a library object: the spec, its JSON form, and detection from a surface cloud.
+
+**What "symmetric" means here.** A rotation ``S`` (4×4 ``object_from_object``, a rotation
+about a point of the object) is a symmetry when the object's *surface geometry* maps onto
+itself: the symmetric mean nearest-neighbour distance between the sampled surface and
+its rotated copy is within ``max_mean_ratio`` of the sampling spacing, and at most
+``max_far_fraction`` of points land more than ``far_ratio`` spacings off the surface.
+Geometry, not colour, decides, because pose estimation registers geometry: scene colours
+from photogrammetry are unreliable under shop-floor lighting, and a pose that only a
+label distinguishes is still ambiguous to the geometric fit. Colour is measured too and
+recorded as ``appearance_breaks`` (e.g. a can's label, a Rubik's cube's faces, the front
+of a mustard bottle): pose estimation then *tries* to pick the right equivalent pose by
+colour and says so, but the geometric group is what makes a pose ``ambiguous``.
+
+For pose reporting, poses ``env_from_object @ S`` for every ``S`` in the group are
+equally good fits; exactly one canonical pose is published (the one whose object "up"
+agrees best with the environment's up, or closest to a previous pose) together with
+the others.
+
+**Spec (JSON-serialisable)**::
+
+    {"kind": "none"}
+    {"kind": "discrete", "rotations": [4x4, ...]}          # the full finite group, identity first
+    {"kind": "continuous", "axis": [x, y, z], "origin": [x, y, z],
+     "rotations": [4x4, ...]}                             # extra discrete elements (e.g. the
+                                                          # 180° flip of a plain can), identity first
+    optional in each: "appearance_breaks": bool
+
+Matrices are row-major nested lists, rotations about points of the object frame (metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from workers.pipeline.errors import InputError
+from workers.pipeline.errors import ShapeError
+from workers.pipeline.geometry import Mat4, Points, as_points, rotation_angle_deg
+
+KINDS = ("none", "discrete", "continuous")
+# distinct elements of the groups we detect (cyclic up to order 4, dihedral, octahedral)
+# are at least 90° apart; closer candidates are the same element measured twice
+DEDUPE_DEG = 30.0
+
+
+@dataclass(frozen=True, eq=False)
+class SymmetrySpec:
+    """Rotational symmetry group of an object (object frame, metres).
+
+    ``rotations``: tuple of 4×4 ``object_from_object`` (identity first); for ``continuous``
+    these are the extra discrete elements combined with every rotation about ``axis`` (unit
+    (3,)) through ``origin`` ((3,), metres). ``appearance_breaks``: colour differs under at
+    least one element.
+    """
+
+    kind: str = "none"
+    rotations: tuple[Mat4, ...] = field(default_factory=lambda: (np.eye(4),))
+    axis: NDArray[np.float64] | None = None
+    origin: NDArray[np.float64] | None = None
+    appearance_breaks: bool = False
+
+    @property
+    def is_symmetric(self) -> bool:
+        """True when some pose other than the identity is equivalent."""
+        return self.kind == "continuous" or len(self.rotations) > 1
+
+    def continuous_rotation(self, angle_rad: float) -> Mat4:
+        """4×4 rotation by ``angle_rad`` about the continuous axis (identity if none)."""
+        if self.axis is None or self.origin is None:
+            return np.eye(4)
+        return rotation_about(self.axis, angle_rad, self.origin)
+
+    def sample(self, n_angles: int = 12) -> list[Mat4]:
+        """Finite list of group elements (continuous: ``n_angles`` steps per discrete element)."""
+        if self.kind != "continuous":
+            return list(self.rotations)
+        out = []
+        for s in self.rotations:
+            for k in range(n_angles):
+                out.append(self.continuous_rotation(2 * np.pi * k / n_angles) @ s)
+        return out
+
+
+NO_SYMMETRY = SymmetrySpec()
+
+
+def axis_angle_matrix(axis: Any, angle_rad: float) -> NDArray[np.float64]:
+    """(3, 3) rotation by ``angle_rad`` (right-handed) about the (3,) ``axis`` (any length > 0)."""
+    a = np.asarray(axis, dtype=np.float64).reshape(-1)
+    if a.shape != (3,):
+        raise ShapeError(f"axis must be (3,), got {a.shape}")
+    norm = float(np.linalg.norm(a))
+    if norm <= 0 or not np.isfinite(norm):
+        raise ShapeError("axis must be a finite non-zero vector")
+    x, y, z = a / norm
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+
+
+
+def rotation_about(axis: NDArray[np.float64], angle_rad: float, origin: NDArray[np.float64]) -> Mat4:
+    """4×4 rotation by ``angle_rad`` about the line through ``origin`` along ``axis``."""
+    r = axis_angle_matrix(axis, angle_rad)
+    out = np.eye(4)
+    out[:3, :3] = r
+    out[:3, 3] = origin - r @ origin
+    return out
+
+
+def _check_rotation(m: Any, what: str) -> Mat4:
+    a = np.asarray(m, dtype=np.float64)
+    if a.shape != (4, 4) or not np.isfinite(a).all():
+        raise InputError(f"symmetry {what} must be a finite 4×4 matrix")
+    r = a[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) < 0.99:
+        raise InputError(f"symmetry {what} is not a proper rotation")
+    if not np.allclose(a[3], [0, 0, 0, 1], atol=1e-9):
+        raise InputError(f"symmetry {what} must have last row 0 0 0 1")
+    return a
+
+
+def spec_from_json(raw: Any) -> SymmetrySpec:
+    """Parse and validate a spec (format in the module docstring); InputError if invalid."""
+    if not isinstance(raw, dict) or raw.get("kind") not in KINDS:
+        raise InputError(f"symmetry must be an object with kind in {KINDS}, got {raw!r:.200}")
+    kind = raw["kind"]
+    brk = bool(raw.get("appearance_breaks", False))
+    if kind == "none":
+        return SymmetrySpec(appearance_breaks=brk)
+    rots_raw = raw.get("rotations", [np.eye(4).tolist()] if kind == "continuous" else None)
+    if not isinstance(rots_raw, list) or not rots_raw:
+        raise InputError("symmetry rotations must be a non-empty list of 4×4 matrices")
+    rots = [_check_rotation(m, f"rotations[{i}]") for i, m in enumerate(rots_raw)]
+    if not any(rotation_angle_deg(r[:3, :3]) < 1e-3 for r in rots):
+        rots.insert(0, np.eye(4))
+    rots.sort(key=lambda r: rotation_angle_deg(r[:3, :3]))
+    if kind == "discrete":
+        return SymmetrySpec("discrete", tuple(rots), appearance_breaks=brk)
+    axis = np.asarray(raw.get("axis"), dtype=np.float64)
+    origin = np.asarray(raw.get("origin", [0.0, 0.0, 0.0]), dtype=np.float64)
+    if axis.shape != (3,) or origin.shape != (3,) or not np.isfinite([*axis, *origin]).all():
+        raise InputError("continuous symmetry needs axis [x, y, z] and origin [x, y, z]")
+    norm = float(np.linalg.norm(axis))
+    if norm < 1e-9:
+        raise InputError("continuous symmetry axis must be non-zero")
+    return SymmetrySpec("continuous", tuple(rots), axis / norm, origin, brk)
+
+
+def spec_to_json(spec: SymmetrySpec) -> dict[str, Any]:
+    """JSON form of a spec (inverse of :func:`spec_from_json`)."""
+    out: dict[str, Any] = {"kind": spec.kind}
+    if spec.kind != "none":
+        out["rotations"] = [np.round(r, 9).tolist() for r in spec.rotations]
+    if spec.kind == "continuous":
+        assert spec.axis is not None and spec.origin is not None
+        out["axis"] = spec.axis.tolist()
+        out["origin"] = spec.origin.tolist()
+    out["appearance_breaks"] = spec.appearance_breaks
+    return out
+
+
+# --------------------------------------------------------------------------- detection
+
+
+@dataclass(frozen=True)
+class SymmetryOptions:
+    """Thresholds of symmetry detection, in units of the sampling spacing ``d0`` (mean
+    distance from a sample to its nearest other sample).
+
+    A perfectly symmetric surface gives a mean ratio of about 0.5; YCB scans give 0.5–0.8
+    for their true symmetries and > 1.3 for near misses (hammer about its handle).
+    """
+
+    n_eval: int = 1500
+    max_mean_ratio: float = 1.0
+    far_ratio: float = 3.0
+    max_far_fraction: float = 0.02
+    coarse_ratio: float = 3.0
+    degenerate_gap: float = 0.1
+    continuous_angles_deg: tuple[float, ...] = (23.0, 45.0, 67.0, 90.0, 131.0, 180.0, 247.0)
+    colour_ratio: float = 1.8
+    max_group: int = 24
+    max_refinements: int = 40
+    seed: int = 0
+
+
+def _fibonacci_hemisphere(n: int) -> Points:
+    i = np.arange(n) + 0.5
+    z = i / n
+    phi = np.pi * (1 + 5**0.5) * i
+    r = np.sqrt(1 - z**2)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _candidate_axes(points: Points, gap: float) -> tuple[list[NDArray[np.float64]], list[NDArray[np.float64]]]:
+    """(main axes, extra axes): principal and frame axes; extra samples in degenerate spaces."""
+    c = points - points.mean(axis=0)
+    w, v = np.linalg.eigh(c.T @ c / len(c))
+    w = w / max(w.max(), 1e-30)
+    main = [v[:, i] for i in range(3)] + [np.eye(3)[i] for i in range(3)]
+    extra: list[NDArray[np.float64]] = []
+    close = [abs(w[i] - w[j]) < gap * max(w[i], w[j]) for i, j in ((0, 1), (1, 2))]
+    if all(close):
+        extra = list(_fibonacci_hemisphere(300))
+    else:
+        for i, j in ((0, 1), (1, 2)):
+            if abs(w[i] - w[j]) < gap * max(w[i], w[j]):
+                for ang in np.radians(np.arange(0.0, 180.0, 4.0)):
+                    extra.append(np.cos(ang) * v[:, i] + np.sin(ang) * v[:, j])
+    return main, extra
+
+
+class _Scorer:
+    """Nearest-neighbour figures of a surface sample against its rotated copy."""
+
+    def __init__(self, points: Points, colors: Points | None, options: SymmetryOptions) -> None:
+        rng = np.random.default_rng(options.seed)
+        self.points = points
+        self.colors = colors
+        self.tree = cKDTree(points)
+        idx = rng.choice(len(points), min(options.n_eval, len(points)), replace=False)
+        self.sub_idx = idx
+        self.sub = points[idx]
+        self.coarse = self.sub[: min(250, len(idx))]
+        dist, nn = self.tree.query(self.sub, k=2)
+        self.d0 = float(dist[:, 1].mean())
+        self.options = options
+        self.centre = points.mean(axis=0)
+        self.colour_base = (
+            float(np.abs(colors[idx] - colors[nn[:, 1]]).sum(axis=1).mean()) if colors is not None else 0.0
+        )
+
+    def mean_ratio(self, t: Mat4, coarse: bool = False) -> float:
+        q = self.coarse if coarse else self.sub
+        d, _ = self.tree.query(q @ t[:3, :3].T + t[:3, 3])
+        return float(d.mean() / self.d0)
+
+    def accepts(self, t: Mat4) -> bool:
+        moved = self.sub @ t[:3, :3].T + t[:3, 3]
+        d, _ = self.tree.query(moved)
+        back, _ = self.tree.query((self.sub - t[:3, 3]) @ t[:3, :3])  # inverse direction
+        dd = np.concatenate([d, back]) / self.d0
+        o = self.options
+        return bool(dd.mean() <= o.max_mean_ratio and (dd > o.far_ratio).mean() <= o.max_far_fraction)
+
+    def colour_ratio(self, t: Mat4) -> float:
+        if self.colors is None or self.colour_base <= 0:
+            return 0.0
+        _, nn = self.tree.query(self.sub @ t[:3, :3].T + t[:3, 3])
+        diff = np.abs(self.colors[self.sub_idx] - self.colors[nn]).sum(axis=1).mean()
+        return float(diff / self.colour_base)
+
+    def snap(self, t: Mat4) -> Mat4 | None:
+        """ICP-refine a candidate symmetry, snap its angle to 360°/n about the refined axis
+        through the centroid, and return the better-scoring of the two if accepted."""
+        refined = self.refine(t)
+        ang = rotation_angle_deg(refined[:3, :3])
+        if ang < DEDUPE_DEG:
+            return None
+        order = max(2, round(360.0 / ang))
+        options = [refined]
+        if abs(360.0 / order - ang) < 10.0:
+            axis = _rotation_axis(refined[:3, :3])
+            for sgn in (1.0, -1.0):
+                cand = rotation_about(sgn * axis, 2 * np.pi / order, self.centre)
+                if rotation_angle_deg(cand[:3, :3].T @ refined[:3, :3]) < 15.0:
+                    options.append(cand)
+        best = min(options, key=self.mean_ratio)
+        return best if self.accepts(best) else None
+
+    def refine(self, t: Mat4) -> Mat4:
+        src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.sub))
+        dst = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.points))
+        reg = o3d.pipelines.registration.registration_icp(
+            src,
+            dst,
+            3.0 * self.d0,
+            t,
+            o3d.pipelines.registration.TransformationEstimationPointToPoint(),
+            o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30),
+        )
+        return np.asarray(reg.transformation, dtype=np.float64).copy()
+
+
+def _rotation_axis(r: NDArray[np.float64]) -> NDArray[np.float64]:
+    w, v = np.linalg.eig(r)
+    k = int(np.argmin(np.abs(w - 1.0)))
+    a = np.real(v[:, k])
+    return np.asarray(a / np.linalg.norm(a), dtype=np.float64)
+
+
+def _same(a: Mat4, b: Mat4, tol_deg: float) -> bool:
+    return rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) < tol_deg
+
+
+def _close_group(group: list[Mat4], new: Mat4, scorer: _Scorer, max_group: int) -> list[Mat4]:
+    """Add ``new`` to a (closed) group and close it under composition; products are
+    re-snapped and checked, so measurement drift does not accumulate."""
+    group = list(group)
+    frontier = [new]
+    while frontier and len(group) < max_group:
+        g = frontier.pop(0)
+        if any(_same(g, h, DEDUPE_DEG) for h in group):
+            continue
+        snapped = scorer.snap(g) if g is not new else g
+        if snapped is None or any(_same(snapped, h, DEDUPE_DEG) for h in group):
+            continue
+        group.append(snapped)
+        for h in list(group):
+            frontier.append(snapped @ h)
+            frontier.append(h @ snapped)
+    return group
+
+
+def detect_symmetry(
+    points: Points, colors: Points | None = None, options: SymmetryOptions = SymmetryOptions()
+) -> SymmetrySpec:
+    """Detect the rotational symmetry of an (N, 3) surface sample (object frame, metres).
+
+    Candidate axes: principal axes, frame axes, and samples of any degenerate principal
+    subspace (a square prism's cross-section plane, a cube's sphere). For each axis the
+    180°, 120° and 90° rotations about the centroid are scored coarsely, refined by ICP and
+    accepted per :class:`SymmetryOptions`; an axis whose rotations by every angle in
+    ``continuous_angles_deg`` are accepted is continuous. ``colors`` ((N, 3) in [0, 1])
+    only sets ``appearance_breaks``. Deterministic.
+    """
+    p = as_points(points)
+    if len(p) < 50:
+        raise InputError("symmetry detection needs at least 50 surface points")
+    o = options
+    scorer = _Scorer(p, colors, o)
+    centre = p.mean(axis=0)
+    main, extra = _candidate_axes(p, o.degenerate_gap)
+
+    # continuous: about the main axes
+    for axis in main:
+        ok = all(
+            scorer.accepts(rotation_about(axis, np.radians(a), centre)) for a in o.continuous_angles_deg
+        )
+        if not ok:
+            continue
+        flips: list[Mat4] = []
+        perp = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
+        perp /= np.linalg.norm(perp)
+        other = np.cross(axis, perp)
+        for ang in np.radians(np.arange(0.0, 180.0, 15.0)):
+            flip = rotation_about(np.cos(ang) * perp + np.sin(ang) * other, np.pi, centre)
+            if scorer.mean_ratio(flip, coarse=True) < o.coarse_ratio:
+                snapped = scorer.snap(flip)
+                if snapped is not None and rotation_angle_deg(snapped[:3, :3]) > 170:
+                    flips.append(snapped)
+                    break
+        rots = tuple([np.eye(4), *flips])
+        samples = [rotation_about(axis, np.radians(a), centre) for a in o.continuous_angles_deg] + flips
+        brk = max((scorer.colour_ratio(t) for t in samples), default=0.0) > o.colour_ratio
+        return SymmetrySpec("continuous", rots, np.asarray(axis, np.float64), centre, brk)
+
+    # discrete: generators from 180°, 120°, 90° rotations about candidate axes
+    cands: list[tuple[float, int, Mat4]] = []
+    for i, axis in enumerate(main + extra):
+        for order in (2, 3, 4) if i < len(main) else (2, 4):
+            cand = rotation_about(axis, 2 * np.pi / order, centre)
+            score = scorer.mean_ratio(cand, coarse=True)
+            if score <= o.coarse_ratio:
+                cands.append((score, order, cand))
+    cands.sort(key=lambda c: c[0])
+    group: list[Mat4] = [np.eye(4)]
+    for _, order, cand in cands[: o.max_refinements]:
+        if any(_same(cand, g, DEDUPE_DEG) for g in group):
+            continue
+        snapped = scorer.snap(cand)
+        if snapped is None or abs(rotation_angle_deg(snapped[:3, :3]) - 360.0 / order) > 10.0:
+            continue
+        group = _close_group(group, snapped, scorer, o.max_group)
+    group.sort(key=lambda r: rotation_angle_deg(r[:3, :3]))
+    if len(group) == 1:
+        return SymmetrySpec()
+    brk = max(scorer.colour_ratio(t) for t in group[1:]) > o.colour_ratio
+    return SymmetrySpec("discrete", tuple(group), appearance_breaks=brk)
+
+
+def symmetry_axis_of(rotation: Mat4) -> NDArray[np.float64]:
+    """Unit rotation axis of a 4×4 rotation (sign arbitrary)."""
+    return _rotation_axis(rotation[:3, :3])

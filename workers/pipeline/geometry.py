@@ -78,3 +78,69 @@ def pose_error(estimated_a_from_b: ArrayLike, true_a_from_b: ArrayLike) -> tuple
     true = as_mat4(true_a_from_b, "true")
     dt = float(np.linalg.norm(est[:3, 3] - true[:3, 3]))
     return dt, rotation_angle_deg(est[:3, :3].T @ true[:3, :3])
+
+
+def umeyama_similarity(src_points: ArrayLike, dst_points: ArrayLike) -> tuple[Mat4, float]:
+    """Least-squares similarity ``dst_from_src`` (Umeyama 1991) with its scale.
+
+    ``src_points`` and ``dst_points`` are matching (N, 3) arrays, N ≥ 3 and not collinear.
+    Returns the 4×4 ``dst_from_src = [s·R | t]`` (its upper-left block is scale × rotation)
+    and the scale ``s``. Raises ShapeError on mismatched shapes or degenerate input.
+    """
+    src = as_points(src_points, "src_points")
+    dst = as_points(dst_points, "dst_points")
+    if src.shape != dst.shape or src.shape[0] < 3:
+        raise ShapeError(f"need matching (N≥3, 3) arrays, got {src.shape} and {dst.shape}")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    xs, xd = src - mu_s, dst - mu_d
+    var_s = float((xs**2).sum() / len(src))
+    if var_s <= 0.0:
+        raise ShapeError("source points are all identical")
+    cov = xd.T @ xs / len(src)
+    u, d, vt = np.linalg.svd(cov)
+    if d[1] <= 1e-12 * max(d[0], 1e-300):
+        raise ShapeError("points are collinear; similarity is not determined")
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1.0
+    rot = u @ sign @ vt
+    scale = float(np.trace(np.diag(d) @ sign) / var_s)
+    out = np.eye(4)
+    out[:3, :3] = scale * rot
+    out[:3, 3] = mu_d - scale * rot @ mu_s
+    return out, scale
+
+
+def project_points(
+    k_matrix: ArrayLike, cam_from_world: ArrayLike, points_world: ArrayLike
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Pinhole projection of (N, 3) world points: returns ((N, 2) pixels, (N,) depths in m).
+
+    ``k_matrix`` is the (3, 3) intrinsic matrix; ``cam_from_world`` a 4×4 rigid transform;
+    OpenCV axes (depth = camera z). Points at depth ≤ 0 get non-finite pixels.
+    """
+    k = np.asarray(k_matrix, dtype=np.float64)
+    if k.shape != (3, 3):
+        raise ShapeError(f"k_matrix must be 3×3, got {k.shape}")
+    p_cam = transform_points(cam_from_world, points_world)
+    z = p_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (p_cam[:, :2] / np.where(z > 0, z, np.nan)[:, None]) @ k[:2, :2].T + k[:2, 2]
+    return uv, z
+
+
+def triangulate_dlt(projections: ArrayLike, pixels: ArrayLike) -> NDArray[np.float64]:
+    """Linear multi-view triangulation (DLT) of one point seen in V ≥ 2 views.
+
+    ``projections`` is (V, 3, 4) ``K @ cam_from_world[:3]``; ``pixels`` is (V, 2).
+    Returns the (3,) point in the world frame. Raises ShapeError on bad shapes.
+    """
+    p = np.asarray(projections, dtype=np.float64)
+    x = np.asarray(pixels, dtype=np.float64)
+    if p.ndim != 3 or p.shape[1:] != (3, 4) or x.shape != (p.shape[0], 2) or p.shape[0] < 2:
+        raise ShapeError(f"need (V≥2, 3, 4) projections, (V, 2) pixels; got {p.shape}, {x.shape}")
+    rows = np.concatenate([x[:, :1] * p[:, 2] - p[:, 0], x[:, 1:] * p[:, 2] - p[:, 1]], axis=0)
+    rows /= np.linalg.norm(rows, axis=1, keepdims=True)
+    _, _, vt = np.linalg.svd(rows)
+    h = vt[-1]
+    return np.asarray(h[:3] / h[3], dtype=np.float64)

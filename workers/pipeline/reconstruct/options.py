@@ -1,0 +1,88 @@
+"""Options of the reconstruct stage: one frozen dataclass and its named presets."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+from workers.pipeline.errors import InputError
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """Every knob of the reconstruct stage. Lengths in metres, angles in degrees.
+
+    Structure from motion: ``max_num_features`` SIFT features per image, images downscaled
+    to ``max_image_size`` pixels on their long side for extraction (-1: as they are);
+    exhaustive matching up to ``exhaustive_max_images`` images, sequential (``sequential_overlap``
+    neighbours, quadratic) above. Multi-view stereo runs at ``mvs_scale`` of the image size,
+    with ``pairs_per_view`` stereo partners per view; a depth survives when it agrees within
+    ``consistency_rel_tol`` (relative) with ≥ ``consistency_min_views`` of the view's
+    ``consistency_views`` nearest neighbours. Fusion voxel size ``voxel_size_m``; ICP
+    refinement against the previous snapshot with shrinking ``icp_max_distances_m``.
+    """
+
+    preset: str = "default"
+    seed: int = 0
+    num_threads: int = -1
+    min_images: int = 3
+    # structure from motion
+    max_num_features: int = 4096
+    max_image_size: int = -1
+    exhaustive_max_images: int = 60
+    sequential_overlap: int = 12
+    min_registered_fraction: float = 0.6
+    # markers
+    marker_subpixel: bool = True
+    min_marker_views: int = 2
+    # multi-view stereo
+    mvs_scale: float = 1.0
+    pairs_per_view: int = 1
+    max_disparities: int = 256
+    sgbm_block_size: int = 5
+    min_triangulation_angle_deg: float = 4.0
+    max_viewing_angle_deg: float = 45.0
+    consistency_views: int = 6
+    consistency_min_views: int = 2
+    consistency_rel_tol: float = 0.01
+    point_stride: int = 2
+    # fusion
+    voxel_size_m: float = 0.0025
+    sor_neighbours: int = 16
+    sor_std_ratio: float = 2.0
+    # alignment to the previous snapshot
+    icp_max_distances_m: tuple[float, ...] = (0.02, 0.01, 0.005)
+    icp_voxel_m: float = 0.004
+    max_alignment_correction_m: float = 0.05
+    max_alignment_correction_deg: float = 3.0
+    min_alignment_fitness: float = 0.3
+
+
+PRESETS: dict[str, ReconstructOptions] = {
+    "default": ReconstructOptions(),
+    "fast": ReconstructOptions(
+        preset="fast",
+        max_num_features=2048,
+        mvs_scale=0.5,
+        max_disparities=128,
+        point_stride=1,
+        consistency_views=4,
+    ),
+    "quality": ReconstructOptions(
+        preset="quality", max_num_features=8192, pairs_per_view=2, point_stride=1
+    ),
+}
+
+
+def options_from_preset(name: str = "default", **overrides: Any) -> ReconstructOptions:
+    """The named preset with ``overrides`` applied; raises InputError for unknown names."""
+    if name not in PRESETS:
+        raise InputError(f"unknown reconstruct preset {name!r}; known: {', '.join(PRESETS)}")
+    fields = {f.name for f in dataclasses.fields(ReconstructOptions)}
+    unknown = set(overrides) - fields
+    if unknown:
+        raise InputError(f"unknown reconstruct options: {', '.join(sorted(unknown))}")
+    if "icp_max_distances_m" in overrides:
+        overrides["icp_max_distances_m"] = tuple(float(v) for v in overrides["icp_max_distances_m"])
+    return dataclasses.replace(PRESETS[name], **overrides)

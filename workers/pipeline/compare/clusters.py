@@ -1,0 +1,144 @@
+"""Density clustering of changed points and merging of clusters that belong to one object.
+
+Clustering is DBSCAN over a radius graph: a point with ≥ ``min_samples`` points (itself
+included) within ``radius`` is a core point; connected core points form a cluster; a
+non-core point within ``radius`` of a core point joins that core's cluster; the rest is
+noise. Clusters under ``min_points`` points are specks and dropped. The radius follows the
+cloud: ``radius = factor × median nearest-neighbour spacing``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from workers.pipeline.errors import ComparisonError
+from workers.pipeline.geometry import as_points
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def dbscan(
+    points_env: ArrayLike, radius: float, min_samples: int = 4, min_points: int = 30
+) -> IntArray:
+    """Cluster labels (N,) of (N, 3) points: 0, 1, … by decreasing size, −1 for noise/specks.
+
+    ``radius`` metres (> 0). Raises ComparisonError for a non-positive radius.
+    """
+    pts = as_points(points_env, "points_env")
+    n = len(pts)
+    if not radius > 0:
+        raise ComparisonError(f"cluster radius must be > 0, got {radius}")
+    labels = np.full(n, -1, dtype=np.int64)
+    if n == 0:
+        return labels
+    tree = cKDTree(pts, balanced_tree=False, compact_nodes=False)
+    pairs = np.asarray(tree.query_pairs(radius, output_type="ndarray"), dtype=np.int64)
+    pairs = pairs.reshape(-1, 2)
+    counts = 1 + np.bincount(pairs.ravel(), minlength=n)
+    core = counts >= min_samples
+    cc = core[pairs[:, 0]] & core[pairs[:, 1]]
+    core_pairs = pairs[cc]
+    graph = coo_matrix(
+        (np.ones(len(core_pairs), dtype=np.int8), (core_pairs[:, 0], core_pairs[:, 1])),
+        shape=(n, n),
+    )
+    _, comp = connected_components(graph, directed=False)
+    raw = np.where(core, comp, -1).astype(np.int64)
+    # border points: a non-core point joins the cluster of (any) core neighbour
+    border = core[pairs[:, 0]] ^ core[pairs[:, 1]]
+    bp = pairs[border]
+    core_end = np.where(core[bp[:, 0]], bp[:, 0], bp[:, 1])
+    other_end = np.where(core[bp[:, 0]], bp[:, 1], bp[:, 0])
+    raw[other_end] = comp[core_end]
+    valid = raw >= 0
+    if not np.any(valid):
+        return labels
+    uniq, inverse, sizes = np.unique(raw[valid], return_inverse=True, return_counts=True)
+    keep = sizes >= min_points
+    order = np.argsort(-sizes, kind="stable")
+    rank = np.full(len(uniq), -1, dtype=np.int64)
+    kept_order = order[keep[order]]
+    rank[kept_order] = np.arange(len(kept_order))
+    labels[valid] = rank[inverse]
+    return labels
+
+
+def groups_from_labels(labels: IntArray, max_clusters: int | None = None) -> list[IntArray]:
+    """Point indices of each cluster label 0, 1, … (at most ``max_clusters``, largest first)."""
+    n_labels = int(labels.max()) + 1 if labels.size else 0
+    if max_clusters is not None:
+        n_labels = min(n_labels, max_clusters)
+    order = np.argsort(labels, kind="stable")
+    sorted_labels = labels[order]
+    starts = np.searchsorted(sorted_labels, np.arange(n_labels), side="left")
+    ends = np.searchsorted(sorted_labels, np.arange(n_labels), side="right")
+    return [order[s:e].astype(np.int64) for s, e in zip(starts, ends, strict=True)]
+
+
+def extent(points_env: FloatArray) -> float:
+    """Diagonal of the axis-aligned bounding box of (N, 3) points, metres (0 for N < 2)."""
+    if len(points_env) < 2:
+        return 0.0
+    return float(np.linalg.norm(points_env.max(axis=0) - points_env.min(axis=0)))
+
+
+def merge_groups(
+    groups: Sequence[IntArray],
+    points_env: FloatArray,
+    assigned: Sequence[Mapping[int, tuple[int, str]]],
+    class_diameters_m: Mapping[str, float],
+    shared_fraction: float = 0.5,
+    size_margin: float = 1.25,
+) -> list[list[int]]:
+    """Which clusters to merge: a partition of ``range(len(groups))`` into merged sets.
+
+    ``assigned[c]`` maps an image index to the detection (index, class name) whose box
+    contains cluster c's re-projection in that image. Two clusters are candidates when, over
+    the images where both are boxed, they fall in the same detection in at least
+    ``shared_fraction`` of them; a merge is accepted only if the merged points' bounding-box
+    diagonal stays within ``size_margin ×`` the diameter of that detection class (classes
+    without a known diameter never merge). Candidates are merged greedily, best first.
+    """
+    n = len(groups)
+    candidates: list[tuple[float, int, int, str]] = []
+    for a in range(n):
+        for b in range(a + 1, n):
+            common = set(assigned[a]) & set(assigned[b])
+            if not common:
+                continue
+            shared = [i for i in common if assigned[a][i][0] == assigned[b][i][0]]
+            frac = len(shared) / len(common)
+            if not shared or frac < shared_fraction:
+                continue
+            names = [assigned[a][i][1] for i in shared]
+            name = max(set(names), key=names.count)
+            candidates.append((frac * len(shared), a, b, name))
+    candidates.sort(key=lambda c: -c[0])
+    parent = list(range(n))
+    members: dict[int, list[int]] = {i: [i] for i in range(n)}
+
+    def find(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for _, a, b, name in candidates:
+        ra, rb = find(a), find(b)
+        if ra == rb or name not in class_diameters_m:
+            continue
+        union = members[ra] + members[rb]
+        idx = np.concatenate([groups[i] for i in union])
+        if extent(points_env[idx]) > size_margin * float(class_diameters_m[name]):
+            continue
+        parent[rb] = ra
+        members[ra] = sorted(union)
+        del members[rb]
+    return [members[r] for r in sorted(members)]

@@ -1,0 +1,177 @@
+"""Options of the compare stage: a frozen dataclass with named presets.
+
+The job row stores ``(preset name, overrides)``; :func:`options_from_json` rebuilds the
+exact options, and :meth:`CompareOptions.to_json` writes them back.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from workers.pipeline.errors import InputError
+
+ThresholdKind = Literal["mean_std", "fixed", "lod"]
+
+
+@dataclass(frozen=True)
+class ThresholdSpec:
+    """How a side's change threshold is chosen (distances in metres).
+
+    - ``mean_std``: mean + k·std of the side's C2C distances (the thesis: k ∈ {0, .5, 1, 1.5}).
+    - ``fixed``: ``distance``.
+    - ``lod``: level of detection from roughness, spacing and registration,
+      ``sqrt(z²(σ_q² + σ_r²) + (spacing_factor·s_r)²) + registration`` (see thresholds.py);
+      ``registration`` None means "from the captures' alignment residuals".
+    """
+
+    kind: ThresholdKind = "mean_std"
+    k: float = 1.0
+    distance: float = 0.02
+    z: float = 1.96
+    spacing_factor: float = 1.0
+    registration: float | None = None
+    neighbours: int = 16
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("mean_std", "fixed", "lod"):
+            raise InputError(f"unknown threshold kind {self.kind!r}")
+        if self.kind == "fixed" and not self.distance > 0:
+            raise InputError("a fixed threshold needs distance > 0")
+        if self.neighbours < 4:
+            raise InputError("lod threshold needs neighbours ≥ 4")
+
+    def to_json(self) -> dict[str, Any]:
+        """The contract's short form, e.g. ``{"kind": "mean_std", "k": 1.0}``."""
+        if self.kind == "mean_std":
+            return {"kind": "mean_std", "k": self.k}
+        if self.kind == "fixed":
+            return {"kind": "fixed", "distance": self.distance}
+        return {
+            "kind": "lod",
+            "z": self.z,
+            "spacing_factor": self.spacing_factor,
+            "registration": self.registration,
+            "neighbours": self.neighbours,
+        }
+
+    @classmethod
+    def from_json(cls, spec: Mapping[str, Any]) -> ThresholdSpec:
+        """Parse the JSON form; raises InputError on unknown kinds or keys."""
+        allowed = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(spec) - allowed
+        if unknown:
+            raise InputError(f"unknown threshold keys: {sorted(unknown)}")
+        try:
+            return cls(**dict(spec))
+        except TypeError as exc:
+            raise InputError(f"bad threshold spec: {exc}") from exc
+
+
+@dataclass(frozen=True)
+class CompareOptions:
+    """Every knob of the compare stage. Lengths in metres, image sizes in pixels."""
+
+    threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
+    # spacing estimate and clustering (DBSCAN over a radius graph)
+    spacing_sample: int = 20_000
+    cluster_radius_factor: float = 3.0
+    cluster_min_samples: int = 4
+    cluster_min_points: int = 30
+    max_clusters: int = 100
+    # visibility (z-buffer by point splatting at reduced resolution)
+    use_visibility: bool = True
+    zbuffer_max_side: int = 256
+    zbuffer_max_points: int = 400_000
+    zbuffer_fill_px: int = 1
+    depth_tolerance_m: float = 0.02
+    depth_tolerance_px: float = 2.0
+    box_percentile: float = 2.0
+    min_visible_points: int = 8
+    # "not seen ≠ removed": a candidate counts only if ≥ min_seen_views of the other
+    # capture's cameras see the space where it was as empty
+    check_seen_removed: bool = True
+    check_seen_added: bool = False
+    min_seen_views: int = 1
+    # merging clusters of one object
+    merge_clusters: bool = True
+    merge_containment: float = 0.6
+    merge_shared_fraction: float = 0.5
+    merge_size_margin: float = 1.25
+    # identification (thesis eq. 3.1)
+    identify_threshold: float = 0.5
+    # change typing against the twin
+    moved_max_distance: float = 5.0
+    swap_distance_factor: float = 0.5
+    instance_match_factor: float = 1.0
+    instance_match_min: float = 0.25
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        positive = (
+            "spacing_sample",
+            "cluster_radius_factor",
+            "cluster_min_samples",
+            "cluster_min_points",
+            "max_clusters",
+            "zbuffer_max_side",
+            "zbuffer_max_points",
+            "min_visible_points",
+            "min_seen_views",
+            "merge_size_margin",
+            "moved_max_distance",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise InputError(f"option {name} must be > 0")
+        if not 0.0 <= self.box_percentile < 50.0:
+            raise InputError("option box_percentile must be in [0, 50)")
+        if isinstance(self.threshold, Mapping):
+            object.__setattr__(self, "threshold", ThresholdSpec.from_json(self.threshold))
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain JSON values; ``threshold`` in its short form."""
+        out = dataclasses.asdict(self)
+        out["threshold"] = self.threshold.to_json()
+        return out
+
+    def replace(self, **overrides: Any) -> CompareOptions:
+        """A copy with ``overrides``; a ``threshold`` may be given as its JSON form."""
+        known = {f.name for f in dataclasses.fields(self)}
+        unknown = set(overrides) - known
+        if unknown:
+            raise InputError(f"unknown compare options: {sorted(unknown)}")
+        if isinstance(overrides.get("threshold"), Mapping):
+            overrides["threshold"] = ThresholdSpec.from_json(overrides["threshold"])
+        return dataclasses.replace(self, **overrides)
+
+
+PRESETS: dict[str, CompareOptions] = {
+    # occlusion-aware, merges split clusters, "not seen ≠ removed"
+    "default": CompareOptions(),
+    # the 2020 thesis as done by hand: no occlusion test, full box extent, no merging,
+    # no visibility check for removals
+    "thesis": CompareOptions(
+        threshold=ThresholdSpec(kind="mean_std", k=1.0),
+        use_visibility=False,
+        box_percentile=0.0,
+        check_seen_removed=False,
+        merge_clusters=False,
+    ),
+    # the level of detection instead of a distribution quantile
+    "lod": CompareOptions(threshold=ThresholdSpec(kind="lod")),
+}
+
+
+def options_from_json(
+    preset: str = "default", overrides: Mapping[str, Any] | None = None
+) -> CompareOptions:
+    """Options from a preset name and overrides (as a job row stores them).
+
+    Raises InputError for an unknown preset or option.
+    """
+    if preset not in PRESETS:
+        raise InputError(f"unknown compare preset {preset!r}; known: {sorted(PRESETS)}")
+    return PRESETS[preset].replace(**dict(overrides or {}))

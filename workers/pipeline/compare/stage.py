@@ -1,0 +1,279 @@
+"""The compare stage: two snapshots in the environment frame → clusters, identities, changes.
+
+Steps: C2C both ways → thresholds → candidate points → "not seen ≠ removed" filter →
+DBSCAN per side → re-projection with visibility into the side's own capture → merging of
+split clusters → identification table (thesis eq. 3.1) → change types against the twin.
+Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
+"""
+
+from __future__ import annotations
+
+import time
+import uuid
+from collections.abc import Callable, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+
+from workers.pipeline.compare.c2c import c2c_both_ways
+from workers.pipeline.compare.changes import classify_changes
+from workers.pipeline.compare.clusters import dbscan, groups_from_labels, merge_groups
+from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.identify import containment, identify, yolo_to_boxes
+from workers.pipeline.compare.options import PRESETS, CompareOptions
+from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
+from workers.pipeline.compare.thresholds import CloudStats, cloud_stats, distance_stats
+from workers.pipeline.compare.visibility import (
+    DepthMap,
+    box_from_pixels,
+    render_depth,
+    seen_empty_counts,
+    visible_points,
+)
+from workers.pipeline.errors import ComparisonError, InputError
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+Progress = Callable[[str, float], None]
+
+
+def render_depth_maps(capture: CaptureData, options: CompareOptions) -> list[DepthMap]:
+    """One z-buffer per camera of ``capture`` from (a seeded subset of) its own cloud."""
+    pts = capture.points_env
+    if len(pts) > options.zbuffer_max_points:
+        rng = np.random.default_rng(options.seed)
+        pts = pts[rng.choice(len(pts), options.zbuffer_max_points, replace=False)]
+    pts32 = pts.astype(np.float32)
+    return [
+        render_depth(cam, pts32, options.zbuffer_max_side, options.zbuffer_fill_px)
+        for cam in capture.cameras
+    ]
+
+
+def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:
+    if len(set(classes)) != len(classes) or not all(isinstance(c, str) and c for c in classes):
+        raise InputError("classes must be unique non-empty names")
+    for name, d in class_diameters_m.items():
+        if not (np.isfinite(d) and d > 0):
+            raise InputError(f"diameter of {name!r} must be finite and > 0, got {d}")
+
+
+def _side_clusters(
+    side: Side,
+    capture: CaptureData,
+    candidates: IntArray,
+    spacing_m: float,
+    depth_maps: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions,
+    first_id: int,
+) -> list[ClusterResult]:
+    """Cluster, re-project, merge and identify one side's candidate points."""
+    pts = capture.points_env[candidates]
+    labels = dbscan(
+        pts,
+        options.cluster_radius_factor * spacing_m,
+        options.cluster_min_samples,
+        options.cluster_min_points,
+    )
+    groups = [candidates[g] for g in groups_from_labels(labels, options.max_clusters)]
+    if not groups:
+        return []
+    all_idx = np.concatenate(groups)
+    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    cams = capture.cameras
+    # visible pixels of each group in each image: pixels[g][image] -> (n, 2)
+    pixels: list[dict[int, FloatArray]] = [{} for _ in groups]
+    for ci, cam in enumerate(cams):
+        dm = depth_maps[ci] if depth_maps is not None else None
+        uv, vis = visible_points(
+            cam,
+            capture.points_env[all_idx],
+            dm,
+            options.depth_tolerance_m,
+            options.depth_tolerance_px,
+        )
+        counts = np.bincount(owner[vis], minlength=len(groups))
+        for g in np.flatnonzero(counts >= options.min_visible_points):
+            pixels[g][ci] = uv[vis & (owner == g)]
+    dets = [
+        yolo_to_boxes(capture.detections.get(cam.name, np.zeros((0, 6))), cam.width, cam.height)
+        for cam in cams
+    ]
+
+    def boxes_of(pix: dict[int, FloatArray]) -> dict[int, FloatArray]:
+        return {i: box_from_pixels(p, options.box_percentile) for i, p in pix.items()}
+
+    partition: list[list[int]] = [[g] for g in range(len(groups))]
+    if options.merge_clusters and len(groups) > 1:
+        assigned: list[dict[int, tuple[int, str]]] = []
+        for group_pixels in pixels:
+            amap: dict[int, tuple[int, str]] = {}
+            for img, box in boxes_of(group_pixels).items():
+                det, cls = dets[img]
+                if len(det) == 0:
+                    continue
+                frac = containment(box[None, :], det)[0]
+                j = int(np.argmax(frac))
+                if frac[j] >= options.merge_containment and 0 <= cls[j] < len(classes):
+                    amap[img] = (j, classes[int(cls[j])])
+            assigned.append(amap)
+        partition = merge_groups(
+            groups,
+            capture.points_env,
+            assigned,
+            class_diameters_m,
+            options.merge_shared_fraction,
+            options.merge_size_margin,
+        )
+    merged_idx: list[IntArray] = []
+    merged_boxes: list[dict[int, FloatArray]] = []
+    for part in partition:
+        merged_idx.append(np.concatenate([groups[g] for g in part]))
+        merged_pixels: dict[int, FloatArray] = {}
+        for img in sorted({i for g in part for i in pixels[g]}):
+            merged_pixels[img] = np.concatenate([pixels[g][img] for g in part if img in pixels[g]])
+        merged_boxes.append(boxes_of(merged_pixels))
+    table = identify(merged_boxes, dets, classes)
+    out: list[ClusterResult] = []
+    for c, (idx, boxes, part) in enumerate(zip(merged_idx, merged_boxes, partition, strict=True)):
+        best = table.best(c, options.identify_threshold)
+        out.append(
+            ClusterResult(
+                id=first_id + c,
+                side=side,
+                indices=idx,
+                points_env=capture.points_env[idx],
+                boxes={cams[i].name: b for i, b in boxes.items()},
+                occurrences=int(table.occurrences[c]),
+                overlaps={k: int(table.overlaps[c, j]) for j, k in enumerate(classes)},
+                mean_iou={k: float(table.mean_iou[c, j]) for j, k in enumerate(classes)},
+                metrics={k: float(table.metric[c, j]) for j, k in enumerate(classes)},
+                object_name=None if best is None else classes[best],
+                merged_from=tuple(part),
+            )
+        )
+    return out
+
+
+def compare_snapshots(
+    before: CaptureData,
+    after: CaptureData,
+    twin: Sequence[TwinInstance],
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions = PRESETS["default"],
+    progress: Progress | None = None,
+    *,
+    new_id: Callable[[], str] | None = None,
+) -> CompareResult:
+    """Compare two snapshots (both in the environment frame, metres) against the twin.
+
+    ``classes[i]`` is detector class id i; ``class_diameters_m`` the library objects'
+    diameters (used to merge split clusters and to decide "same place" for swaps);
+    ``progress(stage, fraction)`` is called along the way and may raise Cancelled;
+    ``new_id`` makes new instance/change ids (default: UUID4).
+    Raises ShapeError/InputError for bad inputs, ComparisonError when a cloud is unusable.
+    """
+    report: Progress = progress or (lambda _stage, _fraction: None)
+    make_id: Callable[[], str] = new_id or (lambda: str(uuid.uuid4()))
+    _check_inputs(classes, class_diameters_m)
+    timings: dict[str, float] = {}
+    t = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t
+        now = time.perf_counter()
+        timings[name] = round(now - t, 4)
+        t = now
+
+    report("compare.distances", 0.0)
+    c2c = c2c_both_ways(before.points_env, after.points_env)
+    lap("c2c")
+    nb = options.threshold.neighbours
+    stats_b: CloudStats = cloud_stats(c2c.tree_before, options.spacing_sample, nb, options.seed)
+    stats_a: CloudStats = cloud_stats(c2c.tree_after, options.spacing_sample, nb, options.seed)
+    reg = float(np.hypot(before.alignment_residual_m, after.alignment_residual_m))
+    dist_added = distance_stats(c2c.added, options.threshold, stats_a, stats_b, reg)
+    dist_removed = distance_stats(c2c.removed, options.threshold, stats_b, stats_a, reg)
+    cand_added = np.flatnonzero(c2c.added > dist_added.threshold).astype(np.int64)
+    cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
+    n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
+    lap("thresholds")
+
+    report("compare.visibility", 0.3)
+    need_after = options.use_visibility or options.check_seen_removed
+    need_before = options.use_visibility or options.check_seen_added
+    maps_after = render_depth_maps(after, options) if need_after else None
+    maps_before = render_depth_maps(before, options) if need_before else None
+    lap("zbuffers")
+    if options.check_seen_removed and maps_after is not None:
+        seen = seen_empty_counts(
+            before.points_env[cand_removed],
+            maps_after,
+            options.depth_tolerance_m,
+            options.depth_tolerance_px,
+        )
+        cand_removed = cand_removed[seen >= options.min_seen_views]
+    if options.check_seen_added and maps_before is not None:
+        seen = seen_empty_counts(
+            after.points_env[cand_added],
+            maps_before,
+            options.depth_tolerance_m,
+            options.depth_tolerance_px,
+        )
+        cand_added = cand_added[seen >= options.min_seen_views]
+    lap("seen_check")
+
+    report("compare.clusters", 0.5)
+    vis_after = maps_after if options.use_visibility else None
+    vis_before = maps_before if options.use_visibility else None
+    clusters = _side_clusters(
+        "added",
+        after,
+        cand_added,
+        stats_a.spacing,
+        vis_after,
+        classes,
+        class_diameters_m,
+        options,
+        1,
+    )
+    clusters += _side_clusters(
+        "removed",
+        before,
+        cand_removed,
+        stats_b.spacing,
+        vis_before,
+        classes,
+        class_diameters_m,
+        options,
+        len(clusters) + 1,
+    )
+    lap("clusters_identify")
+
+    report("compare.changes", 0.9)
+    try:
+        changes = classify_changes(clusters, twin, class_diameters_m, options, make_id)
+    except ValueError as exc:  # linear_sum_assignment on degenerate input
+        raise ComparisonError(f"could not pair changes: {exc}") from exc
+    lap("changes")
+    report("compare.changes", 1.0)
+    stats = {
+        "points": {"before": len(before.points_env), "after": len(after.points_env)},
+        "spacing_m": {"before": stats_b.spacing, "after": stats_a.spacing},
+        "roughness_m": {"before": stats_b.roughness, "after": stats_a.roughness},
+        "candidates": n_cand,
+        "candidates_seen": {"added": int(cand_added.size), "removed": int(cand_removed.size)},
+        "timings_s": timings,
+    }
+    return CompareResult(
+        options=options,
+        distances={"added": dist_added, "removed": dist_removed},
+        clusters=tuple(clusters),
+        changes=tuple(changes),
+        added_distances_m=c2c.added,
+        removed_distances_m=c2c.removed,
+        stats=stats,
+    )

@@ -26,12 +26,19 @@ def make_engine(url: str) -> Engine:
 
         @event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:
+            # Let SQLAlchemy, not pysqlite, emit BEGIN: savepoints then work (SQLAlchemy
+            # docs, "Serializable isolation / Savepoints / Transactional DDL").
+            dbapi_connection.isolation_level = None
             cursor = dbapi_connection.cursor()
             cursor.execute("PRAGMA journal_mode=WAL")
             cursor.execute("PRAGMA foreign_keys=ON")
             cursor.execute("PRAGMA busy_timeout=30000")
             cursor.execute("PRAGMA synchronous=NORMAL")
             cursor.close()
+
+        @event.listens_for(engine, "begin")
+        def _sqlite_begin(conn: Any) -> None:
+            conn.exec_driver_sql("BEGIN")
 
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
@@ -42,9 +49,22 @@ def get_engine() -> Engine:
     return make_engine(get_settings().resolved_database_url)
 
 
-@lru_cache(maxsize=1)
+_session_factory: sessionmaker[Session] | None = None
+
+
 def get_session_factory() -> sessionmaker[Session]:
-    return sessionmaker(bind=get_engine(), expire_on_commit=False)
+    """The process's session factory, bound to the settings' database on first use."""
+    global _session_factory
+    if _session_factory is None:
+        _session_factory = sessionmaker(bind=get_engine(), expire_on_commit=False)
+    return _session_factory
+
+
+def use_session_factory(factory: sessionmaker[Session] | None) -> None:
+    """Bind the process to another factory (an embedding program, or a test's connection);
+    None goes back to the settings' database."""
+    global _session_factory
+    _session_factory = factory
 
 
 @contextmanager

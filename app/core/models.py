@@ -21,6 +21,7 @@ from sqlalchemy import (
     String,
     Text,
     UniqueConstraint,
+    text,
 )
 from sqlalchemy.orm import Mapped, mapped_column, relationship
 
@@ -78,8 +79,8 @@ class LibraryObject(Base):
             "uq_library_objects_live_name",
             "name",
             unique=True,
-            postgresql_where="deleted_at IS NULL",
-            sqlite_where="deleted_at IS NULL",
+            postgresql_where=text("deleted_at IS NULL"),
+            sqlite_where=text("deleted_at IS NULL"),
         ),
     )
 

@@ -2,7 +2,7 @@
 
 Revision ID: 0001
 Revises: 
-Create Date: 2026-11-22 05:00:25.044857
+Create Date: 2026-11-22 05:04:31.111352
 """
 
 from collections.abc import Sequence
@@ -59,7 +59,7 @@ def upgrade() -> None:
     sa.Column('deleted_at', sa.DateTime(timezone=True), nullable=True),
     sa.PrimaryKeyConstraint('id')
     )
-    op.create_index('uq_library_objects_live_name', 'library_objects', ['name'], unique=True, postgresql_where='deleted_at IS NULL', sqlite_where='deleted_at IS NULL')
+    op.create_index('uq_library_objects_live_name', 'library_objects', ['name'], unique=True, postgresql_where=sa.text('deleted_at IS NULL'), sqlite_where=sa.text('deleted_at IS NULL'))
     op.create_table('events',
     sa.Column('id', sa.String(length=36), nullable=False),
     sa.Column('type', sa.String(length=100), nullable=False),
@@ -295,7 +295,7 @@ def downgrade() -> None:
     op.drop_index(op.f('ix_events_type'), table_name='events')
     op.drop_index(op.f('ix_events_environment_id'), table_name='events')
     op.drop_table('events')
-    op.drop_index('uq_library_objects_live_name', table_name='library_objects', postgresql_where='deleted_at IS NULL', sqlite_where='deleted_at IS NULL')
+    op.drop_index('uq_library_objects_live_name', table_name='library_objects', postgresql_where=sa.text('deleted_at IS NULL'), sqlite_where=sa.text('deleted_at IS NULL'))
     op.drop_table('library_objects')
     op.drop_table('environments')
     op.drop_index(op.f('ix_api_keys_prefix'), table_name='api_keys')

@@ -75,6 +75,10 @@ class CompareOptions:
     """Every knob of the compare stage. Lengths in metres, image sizes in pixels."""
 
     threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
+    # distance statistics over "overlap" (points where the other capture looked; a seeded
+    # sample of ≤ stats_sample points) or "all" points (CloudCompare's figures)
+    stats_region: Literal["overlap", "all"] = "overlap"
+    stats_sample: int = 200_000
     # spacing estimate and clustering (DBSCAN over a radius graph)
     spacing_sample: int = 20_000
     cluster_radius_factor: float = 3.0
@@ -112,6 +116,7 @@ class CompareOptions:
     def __post_init__(self) -> None:
         positive = (
             "spacing_sample",
+            "stats_sample",
             "cluster_radius_factor",
             "cluster_min_samples",
             "cluster_min_points",
@@ -126,6 +131,8 @@ class CompareOptions:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise InputError(f"option {name} must be > 0")
+        if self.stats_region not in ("overlap", "all"):
+            raise InputError("option stats_region must be 'overlap' or 'all'")
         if not 0.0 <= self.box_percentile < 50.0:
             raise InputError("option box_percentile must be in [0, 50)")
         if isinstance(self.threshold, Mapping):
@@ -155,6 +162,7 @@ PRESETS: dict[str, CompareOptions] = {
     # no visibility check for removals
     "thesis": CompareOptions(
         threshold=ThresholdSpec(kind="mean_std", k=1.0),
+        stats_region="all",
         use_visibility=False,
         box_percentile=0.0,
         check_seen_removed=False,

@@ -22,10 +22,16 @@ from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.identify import containment, identify, yolo_to_boxes
 from workers.pipeline.compare.options import PRESETS, CompareOptions
 from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
-from workers.pipeline.compare.thresholds import CloudStats, cloud_stats, distance_stats
+from workers.pipeline.compare.thresholds import (
+    CloudStats,
+    DistanceStats,
+    cloud_stats,
+    distance_stats,
+)
 from workers.pipeline.compare.visibility import (
     DepthMap,
     box_from_pixels,
+    covered_mask,
     render_depth,
     seen_empty_counts,
     visible_points,
@@ -48,6 +54,14 @@ def render_depth_maps(capture: CaptureData, options: CompareOptions) -> list[Dep
         render_depth(cam, pts32, options.zbuffer_max_side, options.zbuffer_fill_px)
         for cam in capture.cameras
     ]
+
+
+def _sample_indices(n: int, size: int, seed: int) -> IntArray:
+    """All of range(n), or a sorted seeded sample of ``size`` of them."""
+    if n <= size:
+        return np.arange(n, dtype=np.int64)
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(n, size=size, replace=False)).astype(np.int64)
 
 
 def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:
@@ -194,35 +208,47 @@ def compare_snapshots(
     nb = options.threshold.neighbours
     stats_b: CloudStats = cloud_stats(c2c.tree_before, options.spacing_sample, nb, options.seed)
     stats_a: CloudStats = cloud_stats(c2c.tree_after, options.spacing_sample, nb, options.seed)
+    lap("cloud_stats")
+
+    report("compare.visibility", 0.2)
+    overlap = options.stats_region == "overlap"
+    need_after = options.use_visibility or options.check_seen_removed or overlap
+    need_before = options.use_visibility or options.check_seen_added or overlap
+    maps_after = render_depth_maps(after, options) if need_after else None
+    maps_before = render_depth_maps(before, options) if need_before else None
+    lap("zbuffers")
+
     reg = float(np.hypot(before.alignment_residual_m, after.alignment_residual_m))
-    dist_added = distance_stats(c2c.added, options.threshold, stats_a, stats_b, reg)
-    dist_removed = distance_stats(c2c.removed, options.threshold, stats_b, stats_a, reg)
+    tol = (options.depth_tolerance_m, options.depth_tolerance_px)
+
+    def side_stats(
+        dist: FloatArray,
+        own: CaptureData,
+        other_maps: list[DepthMap] | None,
+        compared: CloudStats,
+        reference: CloudStats,
+    ) -> DistanceStats:
+        if overlap and other_maps:
+            idx = _sample_indices(len(dist), options.stats_sample, options.seed)
+            covered = covered_mask(own.points_env[idx], other_maps, *tol)
+            if np.count_nonzero(covered) >= options.cluster_min_points:
+                return distance_stats(
+                    dist[idx[covered]], options.threshold, compared, reference, reg, "overlap"
+                )
+        return distance_stats(dist, options.threshold, compared, reference, reg, "all")
+
+    dist_added = side_stats(c2c.added, after, maps_before, stats_a, stats_b)
+    dist_removed = side_stats(c2c.removed, before, maps_after, stats_b, stats_a)
     cand_added = np.flatnonzero(c2c.added > dist_added.threshold).astype(np.int64)
     cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
     n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
     lap("thresholds")
 
-    report("compare.visibility", 0.3)
-    need_after = options.use_visibility or options.check_seen_removed
-    need_before = options.use_visibility or options.check_seen_added
-    maps_after = render_depth_maps(after, options) if need_after else None
-    maps_before = render_depth_maps(before, options) if need_before else None
-    lap("zbuffers")
     if options.check_seen_removed and maps_after is not None:
-        seen = seen_empty_counts(
-            before.points_env[cand_removed],
-            maps_after,
-            options.depth_tolerance_m,
-            options.depth_tolerance_px,
-        )
+        seen = seen_empty_counts(before.points_env[cand_removed], maps_after, *tol)
         cand_removed = cand_removed[seen >= options.min_seen_views]
     if options.check_seen_added and maps_before is not None:
-        seen = seen_empty_counts(
-            after.points_env[cand_added],
-            maps_before,
-            options.depth_tolerance_m,
-            options.depth_tolerance_px,
-        )
+        seen = seen_empty_counts(after.points_env[cand_added], maps_before, *tol)
         cand_added = cand_added[seen >= options.min_seen_views]
     lap("seen_check")
 

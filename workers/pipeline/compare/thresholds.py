@@ -29,14 +29,23 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class DistanceStats:
-    """Mean, standard deviation (population, as CloudCompare) and threshold, metres."""
+    """Mean, standard deviation (population, as CloudCompare) and threshold, metres, over
+    ``n`` distances of ``region`` ("all" points or the "overlap" of the two captures)."""
 
     mean: float
     std: float
     threshold: float
+    n: int = 0
+    region: str = "all"
 
-    def to_json(self) -> dict[str, float]:
-        return {"mean": self.mean, "std": self.std, "threshold": self.threshold}
+    def to_json(self) -> dict[str, float | int | str]:
+        return {
+            "mean": self.mean,
+            "std": self.std,
+            "threshold": self.threshold,
+            "n": self.n,
+            "region": self.region,
+        }
 
 
 @dataclass(frozen=True)
@@ -95,6 +104,7 @@ def distance_stats(
     compared: CloudStats | None = None,
     reference: CloudStats | None = None,
     registration_m: float = 0.0,
+    region: str = "all",
 ) -> DistanceStats:
     """Statistics and threshold of one side's (N,) distances (metres) under ``spec``.
 
@@ -113,4 +123,4 @@ def distance_stats(
             raise ComparisonError("the lod threshold needs both clouds' statistics")
         reg = registration_m if spec.registration is None else float(spec.registration)
         thr = lod_threshold(compared, reference, reg, spec.z, spec.spacing_factor)
-    return DistanceStats(mean=mean, std=std, threshold=float(thr))
+    return DistanceStats(mean=mean, std=std, threshold=float(thr), n=int(d.size), region=region)

@@ -150,6 +150,28 @@ def seen_empty_counts(
     return counts
 
 
+def covered_mask(
+    points_env: FloatArray,
+    depth_maps: Sequence[DepthMap],
+    tol_m: float = 0.02,
+    tol_px: float = 2.0,
+) -> BoolArray:
+    """Which (N, 3) points of one capture lie where the *other* capture looked: some camera
+    of it projects the point into its image, in front, and its surface at that pixel is not
+    in front of the point by more than the tolerance (it saw the place, full or empty).
+    Points elsewhere cannot be compared fairly and are left out of distance statistics.
+    """
+    covered = np.zeros(len(points_env), dtype=bool)
+    for dm in depth_maps:
+        todo = ~covered
+        uv, z, inside = project_in_image(dm.camera, points_env[todo])
+        zbuf = _lookup(dm, uv, inside)
+        with np.errstate(invalid="ignore"):
+            ok = inside & np.isfinite(zbuf) & (zbuf >= z - tolerance(dm, z, tol_m, tol_px))
+        covered[np.flatnonzero(todo)[ok]] = True
+    return covered
+
+
 def box_from_pixels(uv: FloatArray, percentile: float = 2.0) -> FloatArray:
     """Robust 2D box ``[x1, y1, x2, y2]`` pixels of (N ≥ 1, 2) pixels: the ``percentile``
     and ``100 − percentile`` percentiles of x and y (0 gives the full extent)."""

@@ -26,6 +26,7 @@ from sqlalchemy.orm import Session
 from app.core import events, jobs
 from app.core.db import transaction
 from app.core.enums import EventType, JobState
+from app.core.errors import DomainError
 from app.core.models import Job
 from app.core.settings import Settings, get_settings
 from app.core.storage import LocalStorage
@@ -96,7 +97,7 @@ def run_job(
         outcome = _fail(
             job_id, attempt, JobState.cancelled, "Cancelled", "cancelled by request", on_failure
         )
-    except (PipelineError, JobFailure) as exc:
+    except (PipelineError, JobFailure, DomainError) as exc:
         outcome = _fail(job_id, attempt, JobState.failed, exc.code, exc.detail, on_failure)
     except Exception as exc:
         log.exception("job %s failed unexpectedly", job_id)
@@ -149,3 +150,16 @@ def record_job_failed(session: Session, job: Job) -> None:
         subject=f"jobs/{job.id}",
         data=data,
     )
+
+
+def on_failure_of(kind: str) -> Callable[[Session, Job, str, str], None] | None:
+    """The failure handler of a job kind (marks its snapshot, comparison or object failed),
+    for failures decided outside the task, such as the sweeper's."""
+    from workers import comparison, objects, snapshot
+
+    handlers: dict[str, Callable[[Session, Job, str, str], None]] = {
+        "snapshot": snapshot.on_failure,
+        "comparison": comparison.on_failure,
+        "object": objects.on_failure,
+    }
+    return handlers.get(str(kind))

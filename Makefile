@@ -1,0 +1,89 @@
+# twindelta — a few targets. `make demo` and `make test` install what they need.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+PYTHON ?= python3
+UV_VERSION := 0.13.9
+VENV := .venv
+UV := .tools/bin/uv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+# Shared libraries Open3D links, and the Debian packages that provide them.
+SYSTEM_LIBS := libusb-1.0.so.0 libGL.so.1 libEGL.so.1 libX11.so.6 libgomp.so.1
+SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libx11-6 libgomp1
+HOST ?= 127.0.0.1
+PORT ?= 8000
+export HOST PORT
+
+.PHONY: help install system-packages test-tools demo serve test bench lint format openapi clean
+
+help:
+	@echo "make demo    - run the whole service on a generated before/after scene and print the changes"
+	@echo "make test    - the test suite (needs PostgreSQL and Redis on 127.0.0.1, see README)"
+	@echo "make serve   - the embedded service (API + workers, no external servers) on HOST:PORT"
+	@echo "make bench   - benchmarks; JSON results under bench/results/"
+	@echo "make lint    - ruff, mypy, import-linter, OpenAPI freshness"
+	@echo "make openapi - regenerate openapi/openapi.json"
+
+$(UV):
+	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "twindelta needs Python >= 3.11 as $(PYTHON)"; exit 1; }
+	$(PYTHON) -m venv .tools
+	.tools/bin/pip install --quiet uv==$(UV_VERSION)
+
+$(STAMP): pyproject.toml uv.lock | $(UV)
+	$(UV) sync --frozen --python $(PYTHON)
+	@touch $@
+
+install: system-packages $(STAMP)
+
+# Installs the missing shared libraries with apt when run as root; otherwise says what to run.
+system-packages:
+	@missing=""; for lib in $(SYSTEM_LIBS); do ldconfig -p | grep -q "$$lib" || missing="$$missing $$lib"; done; \
+	if [ -n "$$missing" ]; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing system packages for:$$missing"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends $(SYSTEM_PACKAGES) >/dev/null; \
+	  else \
+	    echo "Missing shared libraries:$$missing"; \
+	    echo "Install them first:  sudo apt-get install $(SYSTEM_PACKAGES)"; exit 1; \
+	  fi; \
+	fi
+
+demo: install
+	$(PY) -m bench.demo
+
+serve: install
+	$(VENV)/bin/twindelta serve --host $(HOST) --port $(PORT)
+
+# The suite also validates docker-compose.yml with Debian's docker-compose (no engine needed).
+test-tools:
+	@command -v docker-compose >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing docker-compose (to validate docker-compose.yml)"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends docker-compose >/dev/null; \
+	  else echo "Install docker-compose first: sudo apt-get install docker-compose"; exit 1; fi; }
+
+test: install test-tools
+	$(VENV)/bin/pytest -q $(PYTEST_ARGS)
+
+bench: install
+	$(PY) -m bench.run $(BENCH_ARGS)
+
+lint: install
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/mypy app workers/pipeline
+	$(VENV)/bin/mypy workers --exclude workers/pipeline
+	$(VENV)/bin/lint-imports
+	$(VENV)/bin/twindelta openapi | diff -q - openapi/openapi.json >/dev/null || { echo "openapi/openapi.json is stale: run make openapi"; exit 1; }
+
+format: install
+	$(VENV)/bin/ruff check --fix .
+	$(VENV)/bin/ruff format .
+
+openapi: install
+	$(VENV)/bin/twindelta openapi --out openapi/openapi.json
+
+clean:
+	rm -rf .tools $(VENV) twindelta-data demo-output

@@ -1,0 +1,129 @@
+"""The snapshot job: re-read the upload (image sizes, detections) → reconstruct the cloud
+in the environment frame → record quality → start the automatic comparison with the newest
+earlier reconstructed snapshot."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy.orm import Session
+
+from app.core import comparisons, environments, events, ingest, snapshots
+from app.core.db import transaction
+from app.core.enums import EventType, JobState, SnapshotState
+from app.core.models import Job, utcnow
+from workers.pipeline.reconstruct.cameras import load_cameras
+from workers.pipeline.reconstruct.options import options_from_preset
+from workers.pipeline.reconstruct.stage import ReconstructionResult, reconstruct
+from workers.runner import JobContext, run_job
+
+
+@dataclass(frozen=True)
+class SnapshotInputs:
+    snapshot_id: str
+    environment_id: str
+    prefix: str
+    classes: list[str]
+    reference: dict[str, Any] | None
+    options: dict[str, Any]
+    previous_cloud_key: str | None
+
+
+def process(job_id: str) -> str:
+    return run_job(job_id, _compute, _persist, on_failure)
+
+
+def _load(ctx: JobContext) -> SnapshotInputs:
+    snapshot_id = ctx.job.snapshot_id
+    if snapshot_id is None:
+        raise ValueError(f"job {ctx.job.id} has no snapshot")
+    with transaction() as session:
+        snap = snapshots.get(session, snapshot_id)
+        env = environments.get(session, snap.environment_id)
+        snap.state = SnapshotState.processing
+        previous = snapshots.latest_reconstructed_before(session, snap)
+        return SnapshotInputs(
+            snapshot_id=snap.id,
+            environment_id=env.id,
+            prefix=snap.storage_prefix,
+            classes=list(env.classes),
+            reference=env.reference,
+            options=dict(env.options.get("reconstruct", {})),
+            previous_cloud_key=previous.pointcloud_key if previous else None,
+        )
+
+
+def _compute(ctx: JobContext) -> tuple[SnapshotInputs, ReconstructionResult]:
+    inputs = _load(ctx)
+    ctx.progress("ingest", 0.0)
+    records = ingest.read_capture(ctx.storage, inputs.prefix, inputs.classes, ctx.settings)
+    with transaction() as session:
+        ingest.record_images(session, inputs.snapshot_id, records)
+    ctx.progress("ingest", 1.0)
+    cameras_path = ctx.storage.path(f"{inputs.prefix}/cameras.json")
+    options = dict(inputs.options)
+    preset = str(options.pop("preset", ctx.job.preset or "default"))
+    result = reconstruct(
+        images_dir=ctx.storage.path(f"{inputs.prefix}/images"),
+        work_dir=ctx.work_dir / "reconstruct",
+        options=options_from_preset(preset, **options),
+        cameras=load_cameras(cameras_path) if cameras_path.exists() else None,
+        reference=inputs.reference,
+        reference_cloud=(
+            ctx.storage.path(inputs.previous_cloud_key) if inputs.previous_cloud_key else None
+        ),
+        progress=ctx.progress,
+    )
+    return inputs, result
+
+
+def _persist(
+    session: Session, ctx: JobContext, outcome: tuple[SnapshotInputs, ReconstructionResult]
+) -> None:
+    inputs, result = outcome
+    out = f"{inputs.prefix}/reconstruction"
+    ctx.storage.delete_prefix(out)
+    for name, path in (("cloud.ply", result.cloud_path), ("cameras.json", result.cameras_path)):
+        ctx.storage.move_in(Path(path), f"{out}/{name}")
+    snap = snapshots.get(session, inputs.snapshot_id)
+    snap.state = SnapshotState.reconstructed
+    snap.quality = result.quality
+    snap.pointcloud_key = f"{out}/cloud.ply"
+    snap.cameras_key = f"{out}/cameras.json"
+    snap.reconstructed_at = utcnow()
+    session.flush()
+    events.record(
+        session,
+        EventType.snapshot_reconstructed,
+        environment_id=snap.environment_id,
+        subject=f"snapshots/{snap.id}",
+        data={
+            "snapshot": snap.id,
+            "environment": snap.environment_id,
+            "seq": snap.seq,
+            "quality": snap.quality,
+            "links": {"pointcloud": f"/v1/snapshots/{snap.id}/pointcloud"},
+        },
+    )
+    earlier = snapshots.latest_reconstructed_before(session, snap)
+    if earlier is not None:
+        env = environments.get(session, snap.environment_id)
+        comparisons.create(
+            session,
+            snap.environment_id,
+            earlier,
+            snap,
+            dict(env.options.get("compare", {})),
+            automatic=True,
+        )
+
+
+def on_failure(session: Session, job: Job, code: str, detail: str) -> None:
+    if job.snapshot_id is None:
+        return
+    snap = snapshots.get(session, job.snapshot_id)
+    cancelled = job.state == JobState.cancelled
+    snap.state = SnapshotState.cancelled if cancelled else SnapshotState.failed
+    snap.quality = {**(snap.quality or {}), "error": {"code": code, "detail": detail}}

@@ -1,0 +1,250 @@
+"""The scene generator: determinism, label and pose oracles, markers, scenarios, YCB models."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import pytest
+
+from workers.pipeline.errors import InputError
+from workers.pipeline.geometry import invert_rigid, transform_points
+from workers.pipeline.synth import (
+    PRESETS,
+    SCENARIOS,
+    CameraOptions,
+    Scenario,
+    build_scenario,
+    builtin_models,
+    generate,
+    load_model,
+    load_true_surfaces,
+    render_capture,
+    true_surfaces,
+    visible_boxes,
+)
+from workers.pipeline.synth.cameras import intrinsics_matrix
+from workers.pipeline.synth.cli import cli
+from workers.pipeline.synth.markers import marker_corners_m
+
+TINY = PRESETS["tiny"]
+
+
+def _digest(root: Path) -> dict[str, str]:
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
+
+
+@pytest.fixture(scope="module")
+def moved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Scenario]:
+    out = tmp_path_factory.mktemp("moved")
+    return out, generate(out, "moved", seed=3, options=TINY)
+
+
+def test_same_seed_gives_identical_files(tmp_path: Path, moved: tuple[Path, Scenario]) -> None:
+    generate(tmp_path / "again", "moved", seed=3, options=TINY)
+    generate(tmp_path / "other", "moved", seed=4, options=TINY)
+    first, again = _digest(moved[0]), _digest(tmp_path / "again")
+    assert first == again
+    assert len([k for k in first if k.endswith(".png")]) == 2 * TINY.path.n_views
+    other = _digest(tmp_path / "other")
+    assert first["before/images/view_000.png"] != other["before/images/view_000.png"]
+
+
+def test_labels_are_the_extent_of_visible_pixels(moved: tuple[Path, Scenario]) -> None:
+    out, scenario = moved
+    classes = (out / "before" / "classes.txt").read_text().splitlines()
+    w, h = TINY.camera.width, TINY.camera.height
+    n_boxes = 0
+    for capture in ("before", "after"):
+        placements = scenario.capture(capture)
+        for name, view in render_capture(scenario, capture, TINY):
+            stored = cv2.imread(str(out / capture / "images" / name))[:, :, ::-1]
+            assert np.array_equal(stored, view.image)
+            expected = {
+                (classes.index(placements[i].model.name), x0, y0, x1, y1)
+                for i, (x0, y0, x1, y1, _) in visible_boxes(
+                    view.instance, TINY.detection.min_visible_px
+                ).items()
+            }
+            got = set()
+            label = out / capture / "labels" / (Path(name).stem + ".txt")
+            for line in label.read_text().splitlines():
+                cls, cx, cy, bw, bh, conf = line.split()
+                box = (float(cx) - float(bw) / 2, float(cy) - float(bh) / 2)
+                x0, y0 = round(box[0] * w), round(box[1] * h)
+                got.add((int(cls), x0, y0, x0 + round(float(bw) * w), y0 + round(float(bh) * h)))
+                assert 0 < float(conf) <= 1
+            assert got == expected
+            n_boxes += len(got)
+    assert n_boxes >= 2 * TINY.path.n_views
+
+
+def test_ground_truth_round_trips_through_the_files(moved: tuple[Path, Scenario]) -> None:
+    out, scenario = moved
+    gt = json.loads((out / "ground_truth.json").read_text())
+    for capture in ("before", "after"):
+        placements = scenario.capture(capture)
+        assert [o["instance_id"] for o in gt[capture]] == [p.instance_id for p in placements]
+        for item, p in zip(gt[capture], placements, strict=True):
+            assert item["object"] == p.model.name
+            np.testing.assert_allclose(item["env_from_object"], p.env_from_object, atol=1e-12)
+        cameras = json.loads((out / capture / "cameras.json").read_text())
+        assert cameras["intrinsics"]["model"] == "PINHOLE"
+        assert len(cameras["poses"]) == TINY.path.n_views
+        for name, view in render_capture(scenario, capture, TINY):
+            np.testing.assert_allclose(cameras["poses"][name], view.env_from_cam, atol=1e-12)
+    reference = json.loads((out / "reference.json").read_text())
+    assert reference == gt["reference"] == scenario.markers.reference()
+    assert reference["markers"]["dictionary"] == "DICT_4X4_50"
+    for model in scenario.models:
+        mesh = o3d.io.read_triangle_mesh(str(out / "objects" / f"{model.name}.ply"))
+        assert mesh.has_vertex_colors()
+        np.testing.assert_allclose(np.asarray(mesh.vertices), model.mesh.vertices, atol=1e-6)
+
+
+def test_depth_lies_on_the_true_surfaces(moved: tuple[Path, Scenario]) -> None:
+    """Back-projected depth is within 1 mm of the true meshes read back from the files."""
+    out, scenario = moved
+    meshes = load_true_surfaces(out, "after")
+    assert set(meshes) >= {"floor"} | {p.instance_id for p in scenario.after}
+    in_memory = true_surfaces(scenario, "after")
+    for key, mesh in in_memory.items():
+        np.testing.assert_allclose(
+            np.asarray(meshes[key].vertices), np.asarray(mesh.vertices), atol=1e-6
+        )
+    scene = o3d.t.geometry.RaycastingScene()
+    for mesh in meshes.values():
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    k_inv = np.linalg.inv(intrinsics_matrix(TINY.camera))
+    _, view = next(iter(render_capture(scenario, "after", TINY)))
+    v, u = np.nonzero(np.isfinite(view.depth_m))
+    rays = np.column_stack([u, v, np.ones_like(u)]) @ k_inv.T
+    points_cam = rays / np.linalg.norm(rays, axis=1, keepdims=True) * view.depth_m[v, u, None]
+    points_env = transform_points(view.env_from_cam, points_cam)
+    dist = scene.compute_distance(o3d.core.Tensor(points_env.astype(np.float32))).numpy()
+    assert float(np.max(dist)) < 1e-3
+
+
+def test_markers_are_detected_where_they_project() -> None:
+    """At 800×600, cv2.aruco finds ≥ 2 markers per view, corners within 1 px of projection."""
+    options = replace(TINY, camera=CameraOptions(), path=replace(TINY.path, n_views=3))
+    scenario = build_scenario("no_change", builtin_models(), 0, options)
+    k = intrinsics_matrix(options.camera)
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    errors = []
+    for _, view in render_capture(scenario, "before", options):
+        corners, ids, _ = detector.detectMarkers(cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY))
+        assert ids is not None and len(ids) >= 2
+        cam_from_env = invert_rigid(view.env_from_cam)
+        for marker_id, found in zip(ids.ravel(), corners, strict=True):
+            env_from_marker = scenario.markers.env_from_marker[int(marker_id)]
+            corners_env = transform_points(env_from_marker, marker_corners_m(0.15))
+            corners_cam = transform_points(cam_from_env, corners_env)
+            projected = corners_cam @ k.T
+            projected = projected[:, :2] / projected[:, 2:]
+            errors.append(np.linalg.norm(found.reshape(4, 2) - projected, axis=1))
+    errors_px = np.concatenate(errors)
+    assert float(np.max(errors_px)) < 1.0
+    assert float(np.mean(errors_px)) < 0.5
+
+
+def _rests_without_overlap(scenario: Scenario, capture: str) -> None:
+    placements = scenario.capture(capture)
+    for p in placements:
+        lowest = transform_points(p.env_from_object, p.model.mesh.vertices)[:, 2].min()
+        support_z = 0.0 if p.support == "floor" else PRESETS["tiny"].room.table_size_m[2]
+        assert lowest == pytest.approx(support_z, abs=1e-9)
+    for i, a in enumerate(placements):
+        for b in placements[i + 1 :]:
+            gap = np.linalg.norm(a.env_from_object[:2, 3] - b.env_from_object[:2, 3])
+            assert gap > a.model.footprint_radius_m() + b.model.footprint_radius_m()
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_each_scenario_has_its_change(name: str) -> None:
+    scenario = build_scenario(name, builtin_models(), 7, TINY)
+    _rests_without_overlap(scenario, "before")
+    _rests_without_overlap(scenario, "after")
+    before = {p.instance_id: p for p in scenario.before}
+    after = {p.instance_id: p for p in scenario.after}
+    kinds = sorted(c["type"] for c in scenario.changes)
+    expected = {
+        "added": ["added"],
+        "removed": ["removed"],
+        "moved": ["moved"],
+        "swapped": ["swapped"],
+        "symmetric_moved": ["moved"],
+        "multiple": ["added", "moved", "removed"],
+        "no_change": [],
+    }[name]
+    assert kinds == expected
+    for change in scenario.changes:
+        iid = change["instance_id"]
+        if change["type"] == "added":
+            assert iid in after and iid not in before
+        if change["type"] == "removed":
+            assert iid in before and iid not in after
+            np.testing.assert_allclose(change["previous_pose"], before[iid].env_from_object)
+        if change["type"] == "moved":
+            shift = after[iid].env_from_object[:2, 3] - before[iid].env_from_object[:2, 3]
+            assert np.linalg.norm(shift) >= TINY.move_min_m
+            np.testing.assert_allclose(change["pose"], after[iid].env_from_object)
+            assert (before[iid].model.symmetry is not None) == (name == "symmetric_moved")
+        if change["type"] == "swapped":
+            old = next(p for p in scenario.before if p.model.name == change["replaced_object"])
+            assert change["object"] != change["replaced_object"]
+            assert old.instance_id not in after
+            near = after[iid].env_from_object[:2, 3] - old.env_from_object[:2, 3]
+            assert np.linalg.norm(near) < 0.35
+    if name == "no_change":
+        assert [p.env_from_object.tolist() for p in scenario.before] == [
+            p.env_from_object.tolist() for p in scenario.after
+        ]
+
+
+def test_builtin_shapes_need_no_shared_data(tmp_path: Path) -> None:
+    models = builtin_models()
+    assert len([m for m in models if m.symmetry is None]) >= 3
+    assert any(m.symmetry is not None for m in models)
+    for m in models:
+        extent = m.mesh.vertices.max(axis=0) - m.mesh.vertices.min(axis=0)
+        assert 0.15 <= extent.max() <= 0.40
+        assert m.mesh.signed_volume() > 0
+    out = tmp_path / "cli"
+    options = ["--preset", "tiny", "--views", "2", "--seed", "1"]
+    assert cli(["--scenario", "added", "--out", str(out), *options]) == 0
+    assert len(list((out / "after" / "images").glob("*.png"))) == 2
+    assert sorted(p.stem for p in (out / "objects").glob("*.ply")) == sorted(m.name for m in models)
+
+
+def test_scenarios_refuse_what_they_cannot_build() -> None:
+    no_symmetric = [m for m in builtin_models() if m.symmetry is None]
+    with pytest.raises(InputError):
+        build_scenario("symmetric_moved", no_symmetric, 0, TINY)
+    with pytest.raises(InputError):
+        build_scenario("teleported", builtin_models(), 0, TINY)
+
+
+def test_ycb_models_render_with_their_texture(shared_data: Path) -> None:
+    names = ["power_drill", "mustard_bottle", "tomato_soup_can"]
+    models = [load_model(shared_data / "ycb" / n / "textured.obj", n) for n in names]
+    assert models[2].symmetry is not None and models[0].symmetry is None
+    options = replace(TINY, path=replace(TINY.path, n_views=2))
+    scenario = build_scenario("added", models, 0, options)
+    drill = [i for i, p in enumerate(scenario.after) if p.model.name == "power_drill"]
+    assert drill
+    pixels = []
+    for _, view in render_capture(scenario, "after", options):
+        pixels.append(view.image[view.instance == drill[0]].astype(float))
+    colours = np.concatenate(pixels)
+    assert len(colours) > 100
+    assert float(colours.std(axis=0).mean()) > 15.0

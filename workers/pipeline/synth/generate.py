@@ -1,0 +1,252 @@
+"""Write one scenario to disk: images, YOLO labels, cameras, reference, ground truth, models.
+
+Layout under ``out_dir``::
+
+    before/images/view_000.png   before/labels/view_000.txt   before/classes.txt
+    before/cameras.json          after/... (same)             reference.json
+    ground_truth.json            objects/<class>.ply
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from workers.pipeline.errors import InputError, ShapeError
+from workers.pipeline.geometry import as_mat4
+from workers.pipeline.synth.cameras import camera_path, cameras_json_intrinsics, intrinsics_matrix
+from workers.pipeline.synth.options import PRESETS, DetectionOptions, RoomOptions, SynthOptions
+from workers.pipeline.synth.render import Renderer, RenderedView
+from workers.pipeline.synth.scene import Scenario, build_scenario, room_surfaces
+from workers.pipeline.synth.shapes import Mesh, ObjectModel, builtin_models, write_model_ply
+
+CAPTURES: tuple[str, str] = ("before", "after")
+Progress = Callable[[str, float], None]
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One YOLO box: ``class_id``, pixel-edge box (x0, y0, x1, y1), confidence in (0, 1],
+    and the placement index it came from (−1 for a false positive)."""
+
+    class_id: int
+    box_px: tuple[float, float, float, float]
+    confidence: float
+    instance: int
+
+
+def visible_boxes(instance: NDArray[np.int32], min_pixels: int) -> dict[int, tuple[int, int, int, int, int]]:
+    """Per visible instance index: (x0, y0, x1, y1, n_pixels) with exclusive x1, y1, from an
+    (H, W) instance buffer; instances with fewer than ``min_pixels`` pixels are left out."""
+    if instance.ndim != 2:
+        raise ShapeError(f"instance buffer must be (H, W), got {instance.shape}")
+    out = {}
+    for idx in np.unique(instance[instance >= 0]):
+        rows, cols = np.nonzero(instance == idx)
+        if len(rows) >= min_pixels:
+            out[int(idx)] = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1, len(rows))
+    return out
+
+
+def detect(
+    instance: NDArray[np.int32],
+    class_ids: Sequence[int],
+    n_classes: int,
+    options: DetectionOptions,
+    rng: np.random.Generator,
+) -> list[Detection]:
+    """Detections of one view from its instance buffer; ``class_ids[i]`` is the class of
+    placement i. Applies box jitter (pixels), missed detections and false positives."""
+    h, w = instance.shape
+    out = []
+    for idx, (x0, y0, x1, y1, n) in visible_boxes(instance, options.min_visible_px).items():
+        if options.miss_rate > 0 and rng.uniform() < options.miss_rate:
+            continue
+        box = np.asarray([x0, y0, x1, y1], np.float64)
+        if options.box_jitter_px > 0:
+            box += rng.normal(0.0, options.box_jitter_px, 4)
+            box = np.clip(box, 0, [w, h, w, h])
+            if box[2] - box[0] < 2 or box[3] - box[1] < 2:
+                continue
+        confidence = float(np.clip(0.55 + 0.4 * min(1.0, n / 4000.0) + rng.normal(0, 0.03), 0.05, 0.99))
+        out.append(Detection(class_ids[idx], (box[0], box[1], box[2], box[3]), confidence, idx))
+    if options.false_positive_rate > 0 and rng.uniform() < options.false_positive_rate:
+        size = rng.uniform(0.05, 0.25, 2) * [w, h]
+        corner = rng.uniform(0, 1, 2) * ([w, h] - size)
+        box = (corner[0], corner[1], corner[0] + size[0], corner[1] + size[1])
+        out.append(Detection(int(rng.integers(n_classes)), box, float(rng.uniform(0.3, 0.6)), -1))
+    return out
+
+
+def yolo_lines(detections: Sequence[Detection], width: int, height: int, confidence: bool) -> str:
+    """YOLO text: ``<class> <cx> <cy> <w> <h> [<conf>]`` normalised to the image size."""
+    lines = []
+    for det in detections:
+        x0, y0, x1, y1 = det.box_px
+        fields = [
+            f"{(x0 + x1) / 2 / width:.6f}",
+            f"{(y0 + y1) / 2 / height:.6f}",
+            f"{(x1 - x0) / width:.6f}",
+            f"{(y1 - y0) / height:.6f}",
+        ]
+        conf = [f"{det.confidence:.3f}"] if confidence else []
+        lines.append(" ".join([str(det.class_id), *fields, *conf]))
+    return "".join(line + "\n" for line in lines)
+
+
+def view_name(index: int, options: SynthOptions) -> str:
+    """Image file name of view ``index``."""
+    ext = "png" if options.look.jpeg_quality is None else "jpg"
+    return f"view_{index:03d}.{ext}"
+
+
+def render_capture(
+    scenario: Scenario, capture: str, options: SynthOptions
+) -> Iterator[tuple[str, RenderedView]]:
+    """Render every view of ``capture`` ("before" or "after") as (image name, view)."""
+    placements = scenario.capture(capture)
+    c = CAPTURES.index(capture)
+    k = intrinsics_matrix(options.camera)
+    renderer = Renderer(scenario.room, placements, scenario.markers, options.camera, options.look, k)
+    path = camera_path(options.path, np.random.default_rng([scenario.seed, 2, c]))
+    for index, env_from_cam in enumerate(path):
+        rng = np.random.default_rng([scenario.seed, 3, c, index])
+        yield view_name(index, options), renderer.render(env_from_cam, rng)
+
+
+def _encode(image_rgb: NDArray[np.uint8], quality: int | None) -> bytes:
+    bgr = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR)
+    if quality is None:
+        ok, buf = cv2.imencode(".png", bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    else:
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise InputError("image encoding failed")
+    return bytes(buf.tobytes())
+
+
+def write_capture(
+    scenario: Scenario, capture: str, options: SynthOptions, out_dir: Path, progress: Progress | None = None
+) -> None:
+    """Write ``out_dir/<capture>/``: images, labels, classes.txt and cameras.json."""
+    root = out_dir / capture
+    (root / "images").mkdir(parents=True, exist_ok=True)
+    (root / "labels").mkdir(parents=True, exist_ok=True)
+    classes = [m.name for m in scenario.models]
+    (root / "classes.txt").write_text("".join(name + "\n" for name in classes))
+    class_ids = [classes.index(p.model.name) for p in scenario.capture(capture)]
+    c = CAPTURES.index(capture)
+    poses: dict[str, Any] = {}
+    for index, (name, view) in enumerate(render_capture(scenario, capture, options)):
+        (root / "images" / name).write_bytes(_encode(view.image, options.look.jpeg_quality))
+        rng = np.random.default_rng([scenario.seed, 4, c, index])
+        dets = detect(view.instance, class_ids, len(classes), options.detection, rng)
+        text = yolo_lines(dets, options.camera.width, options.camera.height, options.detection.confidence)
+        (root / "labels" / (Path(name).stem + ".txt")).write_text(text)
+        poses[name] = view.env_from_cam.tolist()
+        if progress is not None:
+            progress(f"render_{capture}", (index + 1) / options.path.n_views)
+    cameras: dict[str, Any] = {"intrinsics": cameras_json_intrinsics(options.camera)}
+    if options.write_poses:
+        cameras["poses"] = poses
+    (root / "cameras.json").write_text(json.dumps(cameras, indent=1))
+
+
+def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
+    """The ground-truth document: classes, models, room, placements of both captures, changes.
+
+    Poses are ``env_from_object`` 4×4 row-major lists (metres); ``symmetry`` (object frame)
+    is None or {"kind": "continuous", "axis", "point"}.
+    """
+    classes = [m.name for m in scenario.models]
+
+    def capture(name: str) -> list[dict[str, Any]]:
+        return [
+            {
+                "instance_id": p.instance_id,
+                "object": p.model.name,
+                "class_id": classes.index(p.model.name),
+                "env_from_object": p.env_from_object.tolist(),
+                "support": p.support,
+            }
+            for p in scenario.capture(name)
+        ]
+
+    return {
+        "format": "twindelta-synth/1",
+        "scenario": scenario.name,
+        "seed": scenario.seed,
+        "classes": classes,
+        "objects": {
+            m.name: {"model": f"objects/{m.name}.ply", "symmetry": m.symmetry} for m in scenario.models
+        },
+        "room": asdict(options.room),
+        "reference": scenario.markers.reference(),
+        "before": capture("before"),
+        "after": capture("after"),
+        "changes": list(scenario.changes),
+    }
+
+
+def generate(
+    out_dir: Path,
+    scenario: str,
+    seed: int = 0,
+    options: SynthOptions = PRESETS["demo"],
+    models: Sequence[ObjectModel] | None = None,
+    progress: Progress | None = None,
+) -> Scenario:
+    """Generate and write scenario ``scenario`` under ``out_dir``; returns the scene.
+
+    ``models`` defaults to the built-in shapes. Same arguments ⇒ byte-identical files.
+    """
+    built = build_scenario(scenario, models or builtin_models(), seed, options)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for model in built.models:
+        write_model_ply(model, out_dir / "objects" / f"{model.name}.ply")
+    (out_dir / "reference.json").write_text(json.dumps(built.markers.reference(), indent=1))
+    (out_dir / "ground_truth.json").write_text(json.dumps(ground_truth(built, options), indent=1))
+    for capture in CAPTURES:
+        write_capture(built, capture, options, out_dir, progress)
+    return built
+
+
+def _legacy(mesh: Mesh, env_from_mesh: NDArray[np.float64]) -> o3d.geometry.TriangleMesh:
+    verts = mesh.vertices @ env_from_mesh[:3, :3].T + env_from_mesh[:3, 3]
+    return o3d.geometry.TriangleMesh(
+        o3d.utility.Vector3dVector(verts), o3d.utility.Vector3iVector(mesh.triangles)
+    )
+
+
+def true_surfaces(scenario: Scenario, capture: str) -> dict[str, o3d.geometry.TriangleMesh]:
+    """Every true surface of ``capture`` as legacy meshes in the environment frame (metres):
+    room parts by name ("floor", "wall_0".., "table") and objects by instance id."""
+    out = {s.name: _legacy(s.mesh, np.eye(4)) for s in scenario.room}
+    for p in scenario.capture(capture):
+        out[p.instance_id] = _legacy(p.model.mesh, p.env_from_object)
+    return out
+
+
+def load_true_surfaces(scenario_dir: Path, capture: str) -> dict[str, o3d.geometry.TriangleMesh]:
+    """:func:`true_surfaces` rebuilt from a written scenario (ground_truth.json + objects/)."""
+    path = scenario_dir / "ground_truth.json"
+    if not path.is_file():
+        raise InputError(f"no ground_truth.json in {scenario_dir}")
+    if capture not in CAPTURES:
+        raise InputError(f"capture must be 'before' or 'after', got {capture!r}")
+    gt = json.loads(path.read_text())
+    room = RoomOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in gt["room"].items()})
+    out = {s.name: _legacy(s.mesh, np.eye(4)) for s in room_surfaces(room)}
+    for item in gt[capture]:
+        model = o3d.io.read_triangle_mesh(str(scenario_dir / gt["objects"][item["object"]]["model"]))
+        mesh = Mesh(np.asarray(model.vertices), np.asarray(model.triangles, np.int32))
+        out[item["instance_id"]] = _legacy(mesh, as_mat4(item["env_from_object"], "env_from_object"))
+    return out

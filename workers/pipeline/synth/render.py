@@ -1,0 +1,182 @@
+"""CPU ray-cast rendering of one capture with Open3D's RaycastingScene.
+
+Per pixel: the first hit's surface colour (solid texture, UV texture or marker print),
+Lambertian shading from one directional light plus ambient, and the visible instance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from workers.pipeline.errors import ShapeError
+from workers.pipeline.geometry import Mat4, as_mat4, invert_rigid
+from workers.pipeline.synth.markers import MarkerSheet
+from workers.pipeline.synth.options import CameraOptions, LookOptions
+from workers.pipeline.synth.scene import Placement, StaticSurface
+from workers.pipeline.synth.shapes import Mesh
+from workers.pipeline.synth.texture import F32
+
+_BACKGROUND = np.float32(0.2)
+
+
+@dataclass(frozen=True, eq=False)
+class RenderedView:
+    """One rendered view: ``image`` (H, W, 3) uint8 RGB; ``instance`` (H, W) int32 index into
+    the capture's placements, −1 where no object is visible; ``depth_m`` (H, W) float32 ray
+    length to the hit (inf where nothing is hit); ``env_from_cam`` 4×4."""
+
+    image: NDArray[np.uint8]
+    instance: NDArray[np.int32]
+    depth_m: F32
+    env_from_cam: Mat4
+
+
+@dataclass(frozen=True, eq=False)
+class _Geometry:
+    mesh_env: Mesh
+    normals_env: NDArray[np.float32]
+    static: StaticSurface | None
+    placement: Placement | None
+    object_from_env: Mat4
+
+
+def _pixel_rays(k: NDArray[np.float64], width: int, height: int, offset: tuple[float, float]) -> F32:
+    """(H, W, 3) camera-frame ray directions (z = 1) through pixel centres + ``offset``."""
+    u = np.arange(width, dtype=np.float64) + offset[0]
+    v = np.arange(height, dtype=np.float64) + offset[1]
+    x = (u - k[0, 2]) / k[0, 0]
+    y = (v - k[1, 2]) / k[1, 1]
+    out = np.empty((height, width, 3), np.float32)
+    out[..., 0] = x[None, :]
+    out[..., 1] = y[:, None]
+    out[..., 2] = 1.0
+    return out
+
+
+class Renderer:
+    """Renders views of one capture; the ray-casting scene is built once in ``__init__``."""
+
+    def __init__(
+        self,
+        room: tuple[StaticSurface, ...],
+        placements: tuple[Placement, ...],
+        markers: MarkerSheet,
+        camera: CameraOptions,
+        look: LookOptions,
+        k: NDArray[np.float64],
+    ) -> None:
+        self.camera, self.look, self.markers, self.k = camera, look, markers, k
+        self.placements = placements
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.geometries: list[_Geometry] = []
+        for surface in room:
+            self._add(surface.mesh, np.eye(4), surface, None)
+        for placement in placements:
+            self._add(placement.model.mesh, placement.env_from_object, None, placement)
+        self._rays_cam = _pixel_rays(k, camera.width, camera.height, (0.0, 0.0))
+        light = np.asarray(look.light_dir, np.float32)
+        self._light = light / np.linalg.norm(light)
+        self._focal = np.float32(k[0, 0])
+
+    def _add(
+        self, mesh: Mesh, env_from_mesh: Mat4, static: StaticSurface | None, placement: Placement | None
+    ) -> None:
+        verts = mesh.vertices @ env_from_mesh[:3, :3].T + env_from_mesh[:3, 3]
+        gid = self.scene.add_triangles(
+            o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32))
+        )
+        if gid != len(self.geometries):
+            raise ShapeError(f"unexpected geometry id {gid}")
+        normals = (mesh.vertex_normals @ env_from_mesh[:3, :3].T).astype(np.float32)
+        self.geometries.append(
+            _Geometry(Mesh(verts, mesh.triangles), normals, static, placement, invert_rigid(env_from_mesh))
+        )
+
+    def render(self, env_from_cam: Mat4, rng: np.random.Generator) -> RenderedView:
+        """Render the view of a camera at ``env_from_cam`` (4×4, OpenCV axes)."""
+        env_from_cam = as_mat4(env_from_cam, "env_from_cam")
+        h, w = self.camera.height, self.camera.width
+        rot = env_from_cam[:3, :3].astype(np.float32)
+        origin = env_from_cam[:3, 3].astype(np.float32)
+        dirs = (self._rays_cam.reshape(-1, 3) @ rot.T).astype(np.float32)
+        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=1)
+        hit = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        t_hit = hit["t_hit"].numpy()
+        gids = hit["geometry_ids"].numpy().astype(np.int64)
+        prims = hit["primitive_ids"].numpy().astype(np.int64)
+        bary = hit["primitive_uvs"].numpy()
+        valid = np.isfinite(t_hit)
+        t_safe = np.where(valid, t_hit, np.float32(0.0)).astype(np.float32)
+        points = origin + dirs * t_safe[:, None]
+        ray_len = np.linalg.norm(dirs, axis=1).astype(np.float32)
+        albedo = np.full((len(dirs), 3), _BACKGROUND, np.float32)
+        normal = np.zeros((len(dirs), 3), np.float32)
+        instance = np.full(len(dirs), -1, np.int32)
+        n_static = len(self.geometries) - len(self.placements)
+        for gid in np.unique(gids[valid]):
+            geom = self.geometries[int(gid)]
+            sel = np.flatnonzero(valid & (gids == gid))
+            tri = geom.mesh_env.triangles[prims[sel]]
+            b1, b2 = bary[sel, 0:1], bary[sel, 1:2]
+            nrm = geom.normals_env
+            n_sel = (1 - b1 - b2) * nrm[tri[:, 0]] + b1 * nrm[tri[:, 1]] + b2 * nrm[tri[:, 2]]
+            normal[sel] = n_sel
+            cos = np.abs(np.einsum("ij,ij->i", n_sel, dirs[sel])) / ray_len[sel]
+            cos /= np.maximum(np.linalg.norm(n_sel, axis=1), np.float32(1e-6))
+            footprint = t_safe[sel] * ray_len[sel] / self._focal / np.maximum(cos, np.float32(0.2))
+            if geom.placement is not None:
+                local = points[sel] @ geom.object_from_env[:3, :3].T.astype(np.float32)
+                local += geom.object_from_env[:3, 3].astype(np.float32)
+                model = geom.placement.model
+                albedo[sel] = model.surface_colours(prims[sel], bary[sel], local, footprint)
+                instance[sel] = int(gid) - n_static
+            elif geom.static is not None:
+                albedo[sel] = geom.static.texture.colours(points[sel], footprint)
+                if geom.static.name == "floor":
+                    self._print_markers(sel, points, albedo, env_from_cam)
+        image = self._shade(albedo, normal, dirs, valid, rng).reshape(h, w, 3)
+        depth = np.where(valid, t_hit * ray_len, np.inf).astype(np.float32)
+        return RenderedView(image, instance.reshape(h, w), depth.reshape(h, w), env_from_cam)
+
+    def _print_markers(
+        self, sel: NDArray[np.int64], points: F32, albedo: F32, env_from_cam: Mat4
+    ) -> None:
+        """Overwrite floor pixels on marker paper with the print, supersampled n×n on z = 0."""
+        grey, on_paper = self.markers.albedo(points[sel])
+        if not on_paper.any():
+            return
+        pix = sel[on_paper]
+        n = max(1, self.look.marker_supersample)
+        rot = env_from_cam[:3, :3]
+        origin = env_from_cam[:3, 3]
+        acc = np.zeros((len(pix), 3), np.float32)
+        for i in range(n):
+            for j in range(n):
+                du, dv = ((i + 0.5) / n - 0.5) / self.k[0, 0], ((j + 0.5) / n - 0.5) / self.k[1, 1]
+                cam = self._rays_cam.reshape(-1, 3)[pix] + np.asarray([du, dv, 0.0], np.float32)
+                d = cam @ rot.T
+                t = -origin[2] / np.where(np.abs(d[:, 2]) > 1e-9, d[:, 2], -1e-9)
+                sub = (origin + d * t[:, None]).astype(np.float32)
+                sub_grey, sub_on = self.markers.albedo(sub)
+                acc += np.where(sub_on[:, None], sub_grey[:, None], albedo[pix])
+        albedo[pix] = acc / np.float32(n * n)
+
+    def _shade(
+        self, albedo: F32, normal: F32, dirs: F32, valid: NDArray[np.bool_], rng: np.random.Generator
+    ) -> NDArray[np.uint8]:
+        """Lambert + ambient with normals turned towards the camera, then noise and 8 bits."""
+        norm = np.linalg.norm(normal, axis=1, keepdims=True)
+        normal = normal / np.maximum(norm, 1e-9)
+        facing = np.einsum("ij,ij->i", normal, dirs) > 0
+        normal[facing] *= -1
+        lambert = np.clip(normal @ self._light, 0.0, 1.0)
+        shade = np.where(valid, self.look.ambient + self.look.diffuse * lambert, 1.0)
+        rgb = albedo * shade[:, None].astype(np.float32) * np.float32(255.0)
+        if self.look.noise_sigma > 0:
+            rgb += rng.normal(0.0, self.look.noise_sigma, rgb.shape).astype(np.float32)
+        out: NDArray[np.uint8] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        return out

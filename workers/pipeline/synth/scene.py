@@ -1,0 +1,256 @@
+"""Scene layout: the room, where objects stand, and the before/after scenarios.
+
+All poses are ``env_from_object`` (4×4 float64, metres), environment z up, floor at z = 0.
+Objects rest on a support (floor or table top) by their lowest vertex and only turn about z.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from workers.pipeline.errors import InputError
+from workers.pipeline.geometry import Mat4, make_rigid
+from workers.pipeline.synth.markers import MarkerSheet, marker_sheet, rot_z
+from workers.pipeline.synth.options import SCENARIOS, RoomOptions, SynthOptions
+from workers.pipeline.synth.shapes import Mesh, ObjectModel, box, merge
+from workers.pipeline.synth.texture import SolidTexture
+
+
+@dataclass(frozen=True, eq=False)
+class Placement:
+    """One object instance: its class model and ``env_from_object``."""
+
+    instance_id: str
+    model: ObjectModel
+    env_from_object: Mat4
+    support: str = "floor"
+
+
+@dataclass(frozen=True, eq=False)
+class StaticSurface:
+    """A surface of the room, ``mesh`` in the environment frame, textured in that frame."""
+
+    name: str
+    mesh: Mesh
+    texture: SolidTexture
+
+
+@dataclass(frozen=True, eq=False)
+class Scenario:
+    """A before/after pair with its ground-truth changes (CONTRACT.md change fields)."""
+
+    name: str
+    seed: int
+    models: tuple[ObjectModel, ...]
+    room: tuple[StaticSurface, ...]
+    markers: MarkerSheet
+    before: tuple[Placement, ...]
+    after: tuple[Placement, ...]
+    changes: tuple[dict[str, Any], ...] = field(default=())
+
+    def capture(self, name: str) -> tuple[Placement, ...]:
+        """The placements of capture ``before`` or ``after``."""
+        if name not in ("before", "after"):
+            raise InputError(f"capture must be 'before' or 'after', got {name!r}")
+        return self.before if name == "before" else self.after
+
+
+def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
+    """Floor, four walls and the optional table, as meshes in the environment frame."""
+    half, height = room.size_m / 2.0, room.wall_height_m
+    floor_tex = SolidTexture((0.55, 0.55, 0.52), (0.42, 0.4, 0.36), seed=1, scale=0.7)
+    wall_tex = SolidTexture((0.78, 0.74, 0.64), (0.45, 0.55, 0.62), seed=2, scale=1.5)
+    t = 0.05
+    out = [StaticSurface("floor", box((room.size_m, room.size_m, t), (0, 0, -t / 2)), floor_tex)]
+    for k, (sx, sy, cx, cy) in enumerate(
+        [
+            (t, room.size_m, half + t / 2, 0.0),
+            (t, room.size_m, -half - t / 2, 0.0),
+            (room.size_m, t, 0.0, half + t / 2),
+            (room.size_m, t, 0.0, -half - t / 2),
+        ]
+    ):
+        out.append(StaticSurface(f"wall_{k}", box((sx, sy, height), (cx, cy, height / 2)), wall_tex))
+    if room.table:
+        (w, d, h), (x, y) = room.table_size_m, room.table_centre_m
+        top = 0.03
+        parts = [box((w, d, top), (x, y, h - top / 2))]
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                leg = (x + sx * (w / 2 - 0.04), y + sy * (d / 2 - 0.04), (h - top) / 2)
+                parts.append(box((0.04, 0.04, h - top), leg))
+        wood = SolidTexture((0.62, 0.43, 0.25), (0.4, 0.26, 0.14), seed=3, scale=0.5)
+        out.append(StaticSurface("table", merge(parts), wood))
+    return tuple(out)
+
+
+def _rest_pose(model: ObjectModel, xy: np.ndarray, yaw_rad: float, support_z: float) -> Mat4:
+    """``env_from_object`` standing the model on z = ``support_z`` at ``xy``, turned by yaw."""
+    z = support_z - float(model.mesh.vertices[:, 2].min())
+    return make_rigid(rot_z(yaw_rad), [float(xy[0]), float(xy[1]), z])
+
+
+class _Placer:
+    """Rejection sampling of free resting poses: circles around each object's z axis must
+    not overlap each other, the marker tiles or the table (floor objects), and table objects
+    must lie within the table top."""
+
+    def __init__(self, room: RoomOptions, markers: MarkerSheet, rng: np.random.Generator):
+        self.room, self.markers, self.rng = room, markers, rng
+        self.margin = 0.04
+
+    def _free(self, model: ObjectModel, xy: np.ndarray, support: str, others: Sequence[Placement]) -> bool:
+        r = model.footprint_radius_m()
+        for other in others:
+            if other.support != support:
+                if support == "floor" or other.support == "floor":
+                    continue
+            d = float(np.linalg.norm(other.env_from_object[:2, 3] - xy))
+            if d < r + other.model.footprint_radius_m() + self.margin:
+                return False
+        (w, dpt, _), centre = self.room.table_size_m, np.asarray(self.room.table_centre_m)
+        gap = np.abs(xy - centre) - np.asarray([w / 2, dpt / 2])
+        if support == "table":
+            return bool(np.all(gap <= -r))
+        if float(np.linalg.norm(xy)) + r > self.room.placement_radius_m + 0.2:
+            return False
+        if self.room.table and float(np.linalg.norm(np.maximum(gap, 0.0))) < r + self.margin:
+            return False
+        tile = self.markers.tile_radius_m()
+        return all(
+            float(np.linalg.norm(pose[:2, 3] - xy)) >= r + tile + self.margin
+            for pose in self.markers.env_from_marker.values()
+        )
+
+    def place(
+        self,
+        model: ObjectModel,
+        instance_id: str,
+        others: Sequence[Placement],
+        near_xy: np.ndarray | None = None,
+        away_from: Placement | None = None,
+        min_move_m: float = 0.0,
+    ) -> Placement:
+        """A free pose for ``model``; near ``near_xy`` (swaps) or ≥ ``min_move_m`` away from
+        ``away_from`` (moves). Raises InputError when no free pose is found."""
+        supports = ["floor", "table"] if self.room.table else ["floor"]
+        for attempt in range(2000):
+            support = supports[int(self.rng.integers(len(supports)))]
+            if near_xy is not None:
+                spread = 0.02 + 0.3 * attempt / 2000
+                xy = near_xy + self.rng.normal(0.0, spread, 2)
+                support = "floor" if away_from is None else away_from.support
+            elif support == "table":
+                half = np.asarray(self.room.table_size_m[:2]) / 2
+                xy = np.asarray(self.room.table_centre_m) + self.rng.uniform(-half, half)
+            else:
+                radius = self.room.placement_radius_m * np.sqrt(self.rng.uniform())
+                angle = self.rng.uniform(0.0, 2.0 * np.pi)
+                xy = radius * np.asarray([np.cos(angle), np.sin(angle)])
+            if away_from is not None and near_xy is None:
+                if float(np.linalg.norm(away_from.env_from_object[:2, 3] - xy)) < min_move_m:
+                    continue
+            if not self._free(model, xy, support, others):
+                continue
+            support_z = self.room.table_size_m[2] if support == "table" else 0.0
+            yaw = self.rng.uniform(-np.pi, np.pi)
+            return Placement(instance_id, model, _rest_pose(model, xy, yaw, support_z), support)
+        raise InputError(f"no free place for {model.name}; use fewer or smaller objects")
+
+
+def _change(kind: str, new: Placement | None, old: Placement | None) -> dict[str, Any]:
+    """A ground-truth change record with CONTRACT.md field names."""
+    ref = new if new is not None else old
+    assert ref is not None
+    return {
+        "type": kind,
+        "object": ref.model.name,
+        "instance_id": ref.instance_id,
+        "pose": None if new is None else new.env_from_object.tolist(),
+        "previous_pose": None if old is None or kind == "swapped" else old.env_from_object.tolist(),
+        "replaced_object": old.model.name if kind == "swapped" and old is not None else None,
+        "replaced_instance_id": old.instance_id if kind == "swapped" and old is not None else None,
+    }
+
+
+def build_scenario(
+    scenario: str, models: Sequence[ObjectModel], seed: int, options: SynthOptions
+) -> Scenario:
+    """Lay out the before capture and derive the after capture for ``scenario``.
+
+    The last non-symmetric model is held back as the spare (it appears in ``added``,
+    ``swapped`` and ``multiple``); every other model stands in the before capture.
+    """
+    if scenario not in SCENARIOS:
+        raise InputError(f"unknown scenario {scenario!r}; choose one of {list(SCENARIOS)}")
+    names = [m.name for m in models]
+    if len(models) < 2 or len(set(names)) != len(names):
+        raise InputError(f"need at least two objects with distinct names, got {names}")
+    rng = np.random.default_rng([seed, 1])
+    markers = marker_sheet(options.room)
+    placer = _Placer(options.room, markers, rng)
+    spare_index = max((i for i, m in enumerate(models) if m.symmetry is None), default=len(models) - 1)
+    spare = models[spare_index]
+    before: list[Placement] = []
+    for k, model in enumerate(m for i, m in enumerate(models) if i != spare_index):
+        before.append(placer.place(model, f"inst-{k:02d}", before))
+    next_id = f"inst-{len(before):02d}"
+    after = list(before)
+    changes: list[dict[str, Any]] = []
+
+    def pick(symmetric: bool | None) -> Placement:
+        pool = [p for p in after if symmetric is None or (p.model.symmetry is not None) == symmetric]
+        if not pool:
+            kind = "symmetric" if symmetric else "non-symmetric"
+            raise InputError(f"scenario {scenario!r} needs a {kind} object among {names}")
+        return pool[int(rng.integers(len(pool)))]
+
+    def move(old: Placement) -> None:
+        others = [p for p in after if p is not old]
+        new = placer.place(old.model, old.instance_id, others, away_from=old, min_move_m=options.move_min_m)
+        new = replace(new, instance_id=old.instance_id)
+        after[after.index(old)] = new
+        changes.append(_change("moved", new, old))
+
+    def remove(old: Placement) -> None:
+        after.remove(old)
+        changes.append(_change("removed", None, old))
+
+    def add() -> None:
+        new = placer.place(spare, next_id, after)
+        after.append(new)
+        changes.append(_change("added", new, None))
+
+    if scenario == "added":
+        add()
+    elif scenario == "removed":
+        remove(pick(None))
+    elif scenario == "moved":
+        move(pick(False))
+    elif scenario == "symmetric_moved":
+        move(pick(True))
+    elif scenario == "swapped":
+        old = pick(None)
+        others = [p for p in after if p is not old]
+        new = placer.place(spare, next_id, others, near_xy=old.env_from_object[:2, 3], away_from=old)
+        after[after.index(old)] = new
+        changes.append(_change("swapped", new, old))
+    elif scenario == "multiple":
+        removed = pick(False)
+        remove(removed)
+        move(pick(None))
+        add()
+    return Scenario(
+        scenario,
+        seed,
+        tuple(models),
+        room_surfaces(options.room),
+        markers,
+        tuple(before),
+        tuple(after),
+        tuple(changes),
+    )

@@ -24,6 +24,12 @@ from workers.pipeline.reconstruct.options import ReconstructOptions
 
 log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
+_SGBM_MODES = {
+    "hh4": cv2.STEREO_SGBM_MODE_HH4,
+    "3way": cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+    "sgbm": cv2.STEREO_SGBM_MODE_SGBM,
+    "hh": cv2.STEREO_SGBM_MODE_HH,
+}
 
 
 @dataclass(frozen=True)
@@ -218,7 +224,7 @@ def pair_depth(
         uniquenessRatio=10,
         speckleWindowSize=100,
         speckleRange=2,
-        mode=cv2.STEREO_SGBM_MODE_SGBM_3WAY,
+        mode=_SGBM_MODES[options.sgbm_mode],
     )
     disp = sgbm.compute(rect[0], rect[1]).astype(np.float32) / 16.0
     disp[(disp <= max(min_disp, 0) + 0.5) | (valid_src == 0)] = np.nan

@@ -286,6 +286,7 @@ class WebhookSubscription(Base):
     secret: Mapped[str] = mapped_column(String(200))
     active: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    deactivated_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
 
 class Event(Base):
@@ -304,19 +305,35 @@ class Event(Base):
 
 
 class Delivery(Base):
-    """One event to one subscription; retried on a schedule, every attempt logged."""
+    """One event to one subscription; retried on a schedule, every attempt logged.
+
+    Deliveries sharing an ``ordering_key`` (subscription and environment) are sent one at a
+    time in ``(seq, id)`` order: only the oldest pending one (the head) may be claimed.
+    ``attempts`` counts every attempt ever claimed and is the fencing token of the one in
+    flight; ``run_attempts`` counts those of the current run (a redelivery starts a new run
+    on the retry schedule). ``locked_until`` is the lease of an attempt in flight;
+    ``dispatched_at`` says when a deliver message was last sent for it.
+    """
 
     __tablename__ = "deliveries"
-    __table_args__ = (Index("ix_deliveries_state_next", "state", "next_attempt_at"),)
+    __table_args__ = (
+        Index("ix_deliveries_state_next", "state", "next_attempt_at"),
+        Index("ix_deliveries_key_state_seq", "ordering_key", "state", "seq"),
+    )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
     subscription_id: Mapped[str] = mapped_column(
         ForeignKey("webhook_subscriptions.id", ondelete="CASCADE"), index=True
     )
     event_id: Mapped[str] = mapped_column(ForeignKey("events.id", ondelete="CASCADE"), index=True)
+    ordering_key: Mapped[str] = mapped_column(String(100))
+    seq: Mapped[int] = mapped_column(Integer, default=0)
     state: Mapped[DeliveryState] = mapped_column(String(20), default=DeliveryState.pending)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    run_attempts: Mapped[int] = mapped_column(Integer, default=0)
     next_attempt_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    locked_until: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    dispatched_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     last_status_code: Mapped[int | None] = mapped_column(Integer)
     last_error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)

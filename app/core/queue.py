@@ -68,9 +68,20 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "worker_hijack_root_logger": False,
         "timezone": "UTC",
         "beat_schedule": {
-            "sweep": {"task": "maintenance.sweep", "schedule": settings.sweep_interval_s}
+            "sweep": {"task": "maintenance.sweep", "schedule": settings.sweep_interval_s},
+            "webhooks-dispatch": {
+                "task": "webhooks.dispatch",
+                "schedule": webhook_dispatch_interval_s(settings),
+            },
         },
     }
+
+
+def webhook_dispatch_interval_s(settings: Settings) -> float:
+    """How often beat sends due webhook deliveries: as fine as the shortest retry delay,
+    within 0.25–5 s (a retry cannot happen before the next tick)."""
+    shortest = min(settings.webhook_retry_schedule_s, default=5.0)
+    return min(max(float(shortest), 0.25), 5.0)
 
 
 @lru_cache(maxsize=1)

@@ -1,15 +1,644 @@
-"""Webhook subscriptions and deliveries (the delivery machinery comes with the webhooks
-work; until then events are recorded and no subscription can exist)."""
+"""Webhook subscriptions and deliveries: rows first, HTTP second.
+
+An event is recorded in the transaction of the state change that causes it
+(:func:`app.core.events.record`); :func:`fan_out` adds one pending delivery per matching
+active subscription in that same transaction and enqueues ``webhooks.deliver`` after commit.
+
+Ordering. Deliveries of one subscription and one environment share an ``ordering_key`` and
+are sent one at a time, oldest first (``seq``, then id): only the *head* (the oldest pending
+delivery of its key) may be claimed, so a later event waits while an earlier one is retrying.
+Different keys never wait for each other: each delivery is its own task.
+
+Scheduling lives in the database. A failed attempt sets ``next_attempt_at`` from
+``Settings.webhook_retry_schedule_s`` (with ±20 % jitter) and releases the delivery; the
+``webhooks.dispatch`` beat task sends a deliver message for every head that has come due
+(and re-sends one whose message seems lost). No worker thread sleeps, and a worker that dies
+mid-schedule loses nothing: the next dispatcher tick finds the row.
+
+Claiming. :func:`claim` takes a lease (``locked_until``) with a conditional UPDATE guarded by
+the attempt counter, so two workers never send the same attempt; the counter is also the
+fencing token that :func:`record_attempt` checks before it changes the delivery.
+
+A deliver task is: ``claim`` (short transaction) → :func:`send` (no session open; resolves and
+checks the target again, since DNS can change) → ``record_attempt`` (short transaction).
+
+Signatures follow Standard Webhooks: ``webhook-id`` (the event id, the same on every retry),
+``webhook-timestamp`` (unix seconds of the attempt) and ``webhook-signature:
+v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`` keyed with the base64-decoded secret
+after its ``whsec_`` prefix. :func:`verify_signature` is the receiver's side.
+"""
 
 from __future__ import annotations
 
-from sqlalchemy.orm import Session
+import base64
+import hashlib
+import hmac
+import ipaddress
+import json
+import logging
+import random
+import secrets
+import socket
+import time
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, datetime, timedelta
+from typing import Any
+from urllib.parse import urlsplit
 
-from app.core.models import Event
+import httpx
+from sqlalchemy import and_, exists, func, or_, select, update
+from sqlalchemy.orm import Session, aliased
+
+from app.core import queue
+from app.core.enums import DeliveryState, EventType
+from app.core.errors import Conflict, InvalidInput, NotFound
+from app.core.models import (
+    Delivery,
+    DeliveryAttempt,
+    Environment,
+    Event,
+    WebhookSubscription,
+    utcnow,
+)
+from app.core.settings import Settings
+
+log = logging.getLogger(__name__)
+
+DELIVER_TASK = "webhooks.deliver"
+DISPATCH_TASK = "webhooks.dispatch"
+SECRET_PREFIX = "whsec_"
+SECRET_BYTES = 32
+EXCERPT_BYTES = 1024
+JITTER = 0.2
+USER_AGENT = "twindelta-webhooks/1"
+CONTENT_TYPE = "application/cloudevents+json; charset=utf-8"
+# A deliver message that has not led to a claim after this long is taken as lost and sent
+# again by the dispatcher (duplicates are harmless: the claim is conditional).
+REDISPATCH_AFTER_S = 60.0
+IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
+Network = ipaddress.IPv4Network | ipaddress.IPv6Network
+
+
+# --- signatures -----------------------------------------------------------------------------
+
+
+class WebhookVerificationError(ValueError):
+    """A webhook whose signature, timestamp or headers do not check out."""
+
+
+def new_secret() -> str:
+    """A Standard Webhooks secret: ``whsec_`` and the base64 of 32 random bytes."""
+    return SECRET_PREFIX + base64.b64encode(secrets.token_bytes(SECRET_BYTES)).decode()
+
+
+def _secret_key(secret: str) -> bytes:
+    raw = secret.removeprefix(SECRET_PREFIX)
+    try:
+        return base64.b64decode(raw, validate=True)
+    except ValueError as exc:
+        raise WebhookVerificationError("the secret is not whsec_<base64>") from exc
+
+
+def sign(secret: str, msg_id: str, timestamp: int, body: bytes) -> str:
+    """The ``webhook-signature`` value: ``v1,<base64 HMAC-SHA256 of id.timestamp.body>``."""
+    to_sign = f"{msg_id}.{timestamp}.".encode() + body
+    digest = hmac.new(_secret_key(secret), to_sign, hashlib.sha256).digest()
+    return "v1," + base64.b64encode(digest).decode()
+
+
+def signed_headers(secret: str, msg_id: str, body: bytes, timestamp: int) -> dict[str, str]:
+    """The three Standard Webhooks headers for one attempt."""
+    return {
+        "webhook-id": msg_id,
+        "webhook-timestamp": str(timestamp),
+        "webhook-signature": sign(secret, msg_id, timestamp, body),
+    }
+
+
+def verify_signature(
+    secret: str,
+    headers: Mapping[str, str],
+    body: bytes,
+    tolerance_s: float = 300,
+    *,
+    now: float | None = None,
+) -> None:
+    """Check a received webhook; raise :class:`WebhookVerificationError` unless one of the
+    ``v1`` signatures matches and the timestamp is within ``tolerance_s`` of ``now``.
+
+    ``headers`` may use any letter case; ``body`` must be the raw bytes as received."""
+    lower = {k.lower(): v for k, v in headers.items()}
+    msg_id = lower.get("webhook-id")
+    stamp = lower.get("webhook-timestamp")
+    signatures = lower.get("webhook-signature")
+    if not msg_id or not stamp or not signatures:
+        raise WebhookVerificationError("missing webhook-id, webhook-timestamp or signature")
+    try:
+        timestamp = int(stamp)
+    except ValueError as exc:
+        raise WebhookVerificationError("webhook-timestamp is not an integer") from exc
+    current = time.time() if now is None else now
+    if abs(current - timestamp) > tolerance_s:
+        raise WebhookVerificationError("webhook-timestamp is outside the tolerance")
+    expected = sign(secret, msg_id, timestamp, body).removeprefix("v1,")
+    for candidate in signatures.split():
+        version, _, value = candidate.partition(",")
+        if version == "v1" and hmac.compare_digest(value.encode(), expected.encode()):
+            return
+    raise WebhookVerificationError("no matching signature")
+
+
+# --- target addresses -----------------------------------------------------------------------
+
+
+def allowed_networks(settings: Settings) -> list[Network]:
+    """``Settings.webhook_allowed_networks`` parsed (CIDRs of private targets allowed)."""
+    try:
+        return [ipaddress.ip_network(n, strict=False) for n in settings.webhook_allowed_networks]
+    except ValueError as exc:
+        raise InvalidInput(f"TWINDELTA_WEBHOOK_ALLOWED_NETWORKS: {exc}") from exc
+
+
+def _is_public(ip: IpAddress) -> bool:
+    if isinstance(ip, ipaddress.IPv6Address) and ip.ipv4_mapped is not None:
+        ip = ip.ipv4_mapped
+    return ip.is_global and not ip.is_multicast
+
+
+def _resolve(host: str, port: int) -> list[IpAddress]:
+    try:
+        return [ipaddress.ip_address(host)]
+    except ValueError:
+        pass
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as exc:
+        raise InvalidInput(f"url: cannot resolve host {host!r} ({exc})") from exc
+    return [ipaddress.ip_address(str(info[4][0]).split("%", 1)[0]) for info in infos]
+
+
+def check_target(url: str, networks: Sequence[Network]) -> None:
+    """Refuse (InvalidInput, 422) a URL that is not http(s), or whose host is or resolves to a
+    non-public address (loopback, RFC 1918, link-local, unique-local, ...) outside
+    ``networks``."""
+    try:
+        parts = urlsplit(url)
+        port = parts.port or (443 if parts.scheme == "https" else 80)
+    except ValueError as exc:
+        raise InvalidInput(f"url: {exc}") from exc
+    if parts.scheme not in {"http", "https"}:
+        raise InvalidInput("url: only http and https URLs can receive webhooks")
+    if not parts.hostname:
+        raise InvalidInput("url: the URL has no host")
+    for ip in _resolve(parts.hostname, port):
+        if _is_public(ip) or any(ip in net for net in networks):
+            continue
+        raise InvalidInput(
+            f"url: {parts.hostname} is the non-public address {ip}; private targets need "
+            "TWINDELTA_WEBHOOK_ALLOWED_NETWORKS",
+            code="WebhookTargetRefused",
+        )
+
+
+# --- subscriptions --------------------------------------------------------------------------
+
+
+def create_subscription(
+    session: Session,
+    settings: Settings,
+    *,
+    url: str,
+    event_types: Iterable[EventType] | None,
+    environment_id: str | None,
+) -> WebhookSubscription:
+    """A new active subscription with a fresh secret (the caller shows it once)."""
+    check_target(url, allowed_networks(settings))
+    types = sorted({EventType(t) for t in event_types} if event_types else set(EventType))
+    if environment_id is not None and session.get(Environment, environment_id) is None:
+        raise InvalidInput(f"environment_id: environment {environment_id} not found")
+    sub = WebhookSubscription(
+        url=url,
+        event_types=[str(t) for t in types],
+        environment_id=environment_id,
+        secret=new_secret(),
+        active=True,
+    )
+    session.add(sub)
+    session.flush()
+    return sub
+
+
+def get_subscription(session: Session, subscription_id: str) -> WebhookSubscription:
+    sub = session.get(WebhookSubscription, subscription_id)
+    if sub is None:
+        raise NotFound(f"webhook {subscription_id} not found")
+    return sub
+
+
+def list_subscriptions(session: Session) -> Sequence[WebhookSubscription]:
+    return session.scalars(
+        select(WebhookSubscription).order_by(WebhookSubscription.created_at)
+    ).all()
+
+
+def deactivate(session: Session, subscription_id: str) -> WebhookSubscription:
+    """Stop a subscription: no new deliveries, and its pending ones end as failed."""
+    sub = get_subscription(session, subscription_id)
+    now = utcnow()
+    if sub.active:
+        sub.active, sub.deactivated_at = False, now
+    session.execute(
+        update(Delivery)
+        .where(Delivery.subscription_id == sub.id, Delivery.state == DeliveryState.pending)
+        .values(state=DeliveryState.failed, finished_at=now, last_error="subscription deactivated")
+    )
+    session.flush()
+    return sub
+
+
+def list_deliveries(
+    session: Session, subscription_id: str, *, state: DeliveryState | None, limit: int
+) -> list[tuple[Delivery, Event, list[DeliveryAttempt]]]:
+    """The delivery log of a subscription, newest first, each with every attempt."""
+    get_subscription(session, subscription_id)
+    query = select(Delivery, Event).join(Event, Event.id == Delivery.event_id)
+    query = query.where(Delivery.subscription_id == subscription_id)
+    if state is not None:
+        query = query.where(Delivery.state == state)
+    rows = session.execute(
+        query.order_by(Delivery.seq.desc(), Delivery.id.desc()).limit(limit)
+    ).all()
+    attempts = _attempts_of(session, [d.id for d, _ in rows])
+    return [(d, e, attempts[d.id]) for d, e in rows]
+
+
+def describe(session: Session, delivery: Delivery) -> tuple[Delivery, Event, list[DeliveryAttempt]]:
+    """A delivery with its event and every attempt, for the log."""
+    event = session.get(Event, delivery.event_id)
+    if event is None:
+        raise NotFound(f"event {delivery.event_id} not found")
+    return delivery, event, _attempts_of(session, [delivery.id])[delivery.id]
+
+
+def _attempts_of(session: Session, ids: list[str]) -> dict[str, list[DeliveryAttempt]]:
+    attempts: dict[str, list[DeliveryAttempt]] = {i: [] for i in ids}
+    if ids:
+        for a in session.scalars(
+            select(DeliveryAttempt)
+            .where(DeliveryAttempt.delivery_id.in_(ids))
+            .order_by(DeliveryAttempt.number)
+        ):
+            attempts[a.delivery_id].append(a)
+    return attempts
+
+
+def get_delivery(session: Session, subscription_id: str, delivery_id: str) -> Delivery:
+    delivery = session.get(Delivery, delivery_id)
+    if delivery is None or delivery.subscription_id != subscription_id:
+        raise NotFound(f"delivery {delivery_id} of webhook {subscription_id} not found")
+    return delivery
+
+
+def redeliver(session: Session, subscription_id: str, delivery_id: str) -> Delivery:
+    """Start a new run of attempts for a delivery (also a failed or succeeded one); 409 while
+    an attempt is in flight or the subscription is inactive."""
+    sub = get_subscription(session, subscription_id)
+    delivery = get_delivery(session, subscription_id, delivery_id)
+    if not sub.active:
+        raise Conflict(f"webhook {sub.id} is deactivated", code="WebhookInactive")
+    now = utcnow()
+    if delivery.locked_until is not None and _aware(delivery.locked_until) > now:
+        raise Conflict(f"an attempt of delivery {delivery.id} is in flight", code="InFlight")
+    delivery.state = DeliveryState.pending
+    delivery.run_attempts = 0
+    delivery.next_attempt_at = now
+    delivery.dispatched_at = now
+    delivery.finished_at = None
+    session.flush()
+    queue.enqueue(session, DELIVER_TASK, delivery_id=delivery.id)
+    return delivery
+
+
+# --- fan-out --------------------------------------------------------------------------------
+
+
+def ordering_key(subscription_id: str, environment_id: str | None) -> str:
+    return f"{subscription_id}:{environment_id or '-'}"
 
 
 def fan_out(session: Session, event: Event) -> int:
-    """Create a pending delivery per active subscription matching ``event``; returns how
-    many. No subscriptions can be created yet, so there is nothing to deliver."""
-    del session, event
-    return 0
+    """Create a pending delivery per active subscription matching ``event`` (its type, and its
+    environment when the subscription has a filter); each is sent after commit. Returns how
+    many."""
+    subs = session.scalars(
+        select(WebhookSubscription)
+        .where(
+            WebhookSubscription.active.is_(True),
+            or_(
+                WebhookSubscription.environment_id.is_(None),
+                WebhookSubscription.environment_id == event.environment_id,
+            ),
+        )
+        .order_by(WebhookSubscription.created_at)
+    ).all()
+    now = utcnow()
+    count = 0
+    for sub in subs:
+        if str(event.type) not in sub.event_types:
+            continue
+        key = ordering_key(sub.id, event.environment_id)
+        last = session.scalar(select(func.max(Delivery.seq)).where(Delivery.ordering_key == key))
+        delivery = Delivery(
+            subscription_id=sub.id,
+            event_id=event.id,
+            ordering_key=key,
+            seq=(last or 0) + 1,
+            state=DeliveryState.pending,
+            attempts=0,
+            run_attempts=0,
+            next_attempt_at=now,
+            dispatched_at=now,
+        )
+        session.add(delivery)
+        session.flush()
+        queue.enqueue(session, DELIVER_TASK, delivery_id=delivery.id)
+        count += 1
+    return count
+
+
+# --- the worker's side ----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Claim:
+    """What one attempt needs, detached from the session: the HTTP call holds no session."""
+
+    delivery_id: str
+    attempt: int
+    run_attempt: int
+    url: str
+    secret: str
+    event_id: str
+    body: bytes
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """The result of one HTTP attempt."""
+
+    ok: bool
+    status_code: int | None
+    latency_ms: float | None
+    response_excerpt: str | None
+    error: str | None
+
+
+def lease_s(settings: Settings) -> float:
+    """How long a claimed attempt may take before another worker may take the delivery."""
+    return settings.webhook_timeout_s * 3 + 30.0
+
+
+def cloudevent(event: Event) -> dict[str, Any]:
+    """The CloudEvents 1.0 structured form of an event; ``data`` is passed verbatim."""
+    source = (
+        f"/twindelta/environments/{event.environment_id}" if event.environment_id else "/twindelta"
+    )
+    body: dict[str, Any] = {
+        "specversion": "1.0",
+        "id": event.id,
+        "source": source,
+        "type": str(event.type),
+        "time": _aware(event.created_at).isoformat().replace("+00:00", "Z"),
+        "datacontenttype": "application/json",
+        "data": event.data,
+    }
+    if event.subject is not None:
+        body["subject"] = event.subject
+    return body
+
+
+def _head_query(key: str) -> Any:
+    return (
+        select(Delivery)
+        .where(Delivery.ordering_key == key, Delivery.state == DeliveryState.pending)
+        .order_by(Delivery.seq, Delivery.id)
+        .limit(1)
+    )
+
+
+def claim(
+    session: Session, delivery_id: str, settings: Settings, now: datetime | None = None
+) -> Claim | None:
+    """Claim the next attempt of ``delivery_id``'s ordering key: its head (the oldest pending
+    delivery, which may be another one than asked for), when it is due, no attempt of the key
+    is in flight and its subscription is active. None when there is nothing to do now."""
+    now = now or utcnow()
+    asked = session.get(Delivery, delivery_id)
+    if asked is None:
+        return None
+    key = asked.ordering_key
+    in_flight = session.scalar(
+        select(func.count())
+        .select_from(Delivery)
+        .where(
+            Delivery.ordering_key == key,
+            Delivery.state == DeliveryState.pending,
+            Delivery.locked_until > now,
+        )
+    )
+    if in_flight:
+        return None
+    head = session.scalars(_head_query(key)).first()
+    if head is None or (head.next_attempt_at and _aware(head.next_attempt_at) > now):
+        return None
+    sub = session.get(WebhookSubscription, head.subscription_id)
+    event = session.get(Event, head.event_id)
+    if sub is None or event is None or not sub.active:
+        session.execute(
+            update(Delivery)
+            .where(Delivery.id == head.id, Delivery.state == DeliveryState.pending)
+            .values(state=DeliveryState.failed, finished_at=now, last_error="subscription gone")
+        )
+        return None
+    attempt, run_attempt = head.attempts + 1, head.run_attempts + 1
+    claimed = session.execute(
+        update(Delivery)
+        .where(
+            Delivery.id == head.id,
+            Delivery.state == DeliveryState.pending,
+            Delivery.attempts == head.attempts,
+            or_(Delivery.locked_until.is_(None), Delivery.locked_until <= now),
+        )
+        .values(
+            attempts=attempt,
+            run_attempts=run_attempt,
+            locked_until=now + timedelta(seconds=lease_s(settings)),
+        )
+        .execution_options(synchronize_session=False)
+    )
+    if claimed.rowcount != 1:  # type: ignore[attr-defined]
+        return None
+    body = json.dumps(cloudevent(event), separators=(",", ":"), ensure_ascii=False).encode()
+    return Claim(head.id, attempt, run_attempt, sub.url, sub.secret, event.id, body)
+
+
+def send(
+    claim: Claim, settings: Settings, *, transport: httpx.BaseTransport | None = None
+) -> Outcome:
+    """POST the signed event; never raises. Any 2xx is success. The target is checked again
+    first (DNS can change since the subscription was made); redirects are not followed."""
+    try:
+        check_target(claim.url, allowed_networks(settings))
+    except InvalidInput as exc:
+        return Outcome(False, None, None, None, f"refused: {exc.detail}")
+    headers = signed_headers(claim.secret, claim.event_id, claim.body, int(time.time()))
+    headers.update({"content-type": CONTENT_TYPE, "user-agent": USER_AGENT})
+    start = time.perf_counter()
+    try:
+        with (
+            httpx.Client(
+                timeout=settings.webhook_timeout_s, follow_redirects=False, transport=transport
+            ) as client,
+            client.stream("POST", claim.url, content=claim.body, headers=headers) as response,
+        ):
+            latency = (time.perf_counter() - start) * 1000.0
+            excerpt = bytearray()
+            for chunk in response.iter_bytes():
+                excerpt += chunk
+                if len(excerpt) >= EXCERPT_BYTES:
+                    break
+            text = bytes(excerpt[:EXCERPT_BYTES]).decode("utf-8", errors="replace")
+            ok = 200 <= response.status_code < 300
+            error = None if ok else f"HTTP {response.status_code}"
+            return Outcome(ok, response.status_code, latency, text, error)
+    except httpx.TimeoutException as exc:
+        error = f"timeout after {settings.webhook_timeout_s:g} s ({type(exc).__name__})"
+    except httpx.HTTPError as exc:
+        error = f"{type(exc).__name__}: {exc}"
+    except Exception as exc:  # a delivery must always be recorded
+        error = f"{type(exc).__name__}: {exc}"
+    return Outcome(False, None, (time.perf_counter() - start) * 1000.0, None, error[:2000])
+
+
+def retry_delay_s(settings: Settings, run_attempt: int) -> float | None:
+    """Seconds before the next attempt after failed attempt ``run_attempt`` of a run (±20 %
+    jitter), or None when the schedule is used up."""
+    schedule = settings.webhook_retry_schedule_s
+    if run_attempt > len(schedule):
+        return None
+    return float(schedule[run_attempt - 1]) * random.uniform(1 - JITTER, 1 + JITTER)
+
+
+def record_attempt(
+    session: Session,
+    claim: Claim,
+    outcome: Outcome,
+    settings: Settings,
+    now: datetime | None = None,
+) -> str:
+    """Log the attempt and move the delivery on: succeeded, scheduled again, or failed (dead
+    letter) when the schedule is used up. Only the attempt that holds the claim changes the
+    delivery. When the delivery is final, the next one of its key is sent. Returns the new
+    state, or ``"lost"`` when another attempt took the delivery over."""
+    now = now or utcnow()
+    session.add(
+        DeliveryAttempt(
+            delivery_id=claim.delivery_id,
+            number=claim.attempt,
+            attempted_at=now,
+            status_code=outcome.status_code,
+            latency_ms=outcome.latency_ms,
+            response_excerpt=outcome.response_excerpt,
+            error=outcome.error,
+        )
+    )
+    values: dict[str, Any] = {
+        "locked_until": None,
+        "last_status_code": outcome.status_code,
+        "last_error": outcome.error,
+    }
+    delay = None if outcome.ok else retry_delay_s(settings, claim.run_attempt)
+    if outcome.ok:
+        values.update(state=DeliveryState.succeeded, finished_at=now)
+    elif delay is None:
+        values.update(state=DeliveryState.failed, finished_at=now)
+    else:
+        values.update(next_attempt_at=now + timedelta(seconds=delay), dispatched_at=None)
+    updated = session.execute(
+        update(Delivery)
+        .where(
+            Delivery.id == claim.delivery_id,
+            Delivery.state == DeliveryState.pending,
+            Delivery.attempts == claim.attempt,
+        )
+        .values(**values)
+        .execution_options(synchronize_session=False)
+    )
+    session.flush()
+    if updated.rowcount != 1:  # type: ignore[attr-defined]
+        log.warning("delivery %s attempt %s lost its claim", claim.delivery_id, claim.attempt)
+        return "lost"
+    if outcome.ok or delay is None:
+        _send_next(session, claim.delivery_id, now)
+        return str(values["state"])
+    return "retrying"
+
+
+def _send_next(session: Session, delivery_id: str, now: datetime) -> None:
+    key = session.scalar(select(Delivery.ordering_key).where(Delivery.id == delivery_id))
+    if key is None:
+        return
+    head = session.scalars(_head_query(key)).first()
+    if head is not None:
+        session.execute(
+            update(Delivery)
+            .where(Delivery.id == head.id)
+            .values(dispatched_at=now)
+            .execution_options(synchronize_session=False)
+        )
+        queue.enqueue(session, DELIVER_TASK, delivery_id=head.id)
+
+
+def dispatch_due(session: Session, now: datetime | None = None, limit: int = 500) -> list[str]:
+    """Send a deliver message for every due, unclaimed head of an ordering key that has no
+    message on its way (or whose message seems lost); returns their ids. Run by beat."""
+    now = now or utcnow()
+    older = aliased(Delivery)
+    has_older = exists().where(
+        older.ordering_key == Delivery.ordering_key,
+        older.state == DeliveryState.pending,
+        or_(older.seq < Delivery.seq, and_(older.seq == Delivery.seq, older.id < Delivery.id)),
+    )
+    stale = now - timedelta(seconds=REDISPATCH_AFTER_S)
+    not_sent = or_(Delivery.dispatched_at.is_(None), Delivery.dispatched_at < stale)
+    free = or_(Delivery.locked_until.is_(None), Delivery.locked_until <= now)
+    ids = session.scalars(
+        select(Delivery.id)
+        .where(
+            Delivery.state == DeliveryState.pending,
+            or_(Delivery.next_attempt_at.is_(None), Delivery.next_attempt_at <= now),
+            free,
+            not_sent,
+            ~has_older,
+        )
+        .order_by(Delivery.next_attempt_at)
+        .limit(limit)
+    ).all()
+    sent: list[str] = []
+    for delivery_id in ids:
+        marked = session.execute(
+            update(Delivery)
+            .where(Delivery.id == delivery_id, Delivery.state == DeliveryState.pending, not_sent)
+            .values(dispatched_at=now)
+            .execution_options(synchronize_session=False)
+        )
+        if marked.rowcount == 1:  # type: ignore[attr-defined]
+            queue.enqueue(session, DELIVER_TASK, delivery_id=delivery_id)
+            sent.append(delivery_id)
+    return sent
+
+
+def _aware(value: datetime) -> datetime:
+    """SQLite returns naive datetimes; they are UTC."""
+    return value if value.tzinfo else value.replace(tzinfo=UTC)

@@ -2,7 +2,7 @@
 
 Revision ID: 0001
 Revises: 
-Create Date: 2026-11-22 05:04:31.111352
+Create Date: 2026-11-22 05:08:53.144175
 """
 
 from collections.abc import Sequence
@@ -103,6 +103,7 @@ def upgrade() -> None:
     sa.Column('secret', sa.String(length=200), nullable=False),
     sa.Column('active', sa.Boolean(), nullable=False),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
+    sa.Column('deactivated_at', sa.DateTime(timezone=True), nullable=True),
     sa.ForeignKeyConstraint(['environment_id'], ['environments.id'], ondelete='CASCADE'),
     sa.PrimaryKeyConstraint('id')
     )
@@ -111,9 +112,14 @@ def upgrade() -> None:
     sa.Column('id', sa.String(length=36), nullable=False),
     sa.Column('subscription_id', sa.String(length=36), nullable=False),
     sa.Column('event_id', sa.String(length=36), nullable=False),
+    sa.Column('ordering_key', sa.String(length=100), nullable=False),
+    sa.Column('seq', sa.Integer(), nullable=False),
     sa.Column('state', sa.String(length=20), nullable=False),
     sa.Column('attempts', sa.Integer(), nullable=False),
+    sa.Column('run_attempts', sa.Integer(), nullable=False),
     sa.Column('next_attempt_at', sa.DateTime(timezone=True), nullable=True),
+    sa.Column('locked_until', sa.DateTime(timezone=True), nullable=True),
+    sa.Column('dispatched_at', sa.DateTime(timezone=True), nullable=True),
     sa.Column('last_status_code', sa.Integer(), nullable=True),
     sa.Column('last_error', sa.Text(), nullable=True),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
@@ -123,6 +129,7 @@ def upgrade() -> None:
     sa.PrimaryKeyConstraint('id')
     )
     op.create_index(op.f('ix_deliveries_event_id'), 'deliveries', ['event_id'], unique=False)
+    op.create_index('ix_deliveries_key_state_seq', 'deliveries', ['ordering_key', 'state', 'seq'], unique=False)
     op.create_index('ix_deliveries_state_next', 'deliveries', ['state', 'next_attempt_at'], unique=False)
     op.create_index(op.f('ix_deliveries_subscription_id'), 'deliveries', ['subscription_id'], unique=False)
     op.create_table('jobs',
@@ -286,6 +293,7 @@ def downgrade() -> None:
     op.drop_table('jobs')
     op.drop_index(op.f('ix_deliveries_subscription_id'), table_name='deliveries')
     op.drop_index('ix_deliveries_state_next', table_name='deliveries')
+    op.drop_index('ix_deliveries_key_state_seq', table_name='deliveries')
     op.drop_index(op.f('ix_deliveries_event_id'), table_name='deliveries')
     op.drop_table('deliveries')
     op.drop_index(op.f('ix_webhook_subscriptions_environment_id'), table_name='webhook_subscriptions')

@@ -1,0 +1,82 @@
+from __future__ import annotations
+
+from datetime import datetime
+
+from pydantic import BaseModel, Field
+
+from app.api.schemas.common import Model
+from app.core.enums import DeliveryState, EventType
+from app.core.models import Delivery, DeliveryAttempt, Event
+
+
+class WebhookCreate(BaseModel):
+    url: str = Field(
+        min_length=1,
+        max_length=2000,
+        description="http(s) URL; private addresses only when allowed by the operator",
+    )
+    event_types: list[EventType] | None = Field(
+        default=None, description="the event types to send; default every type"
+    )
+    environment_id: str | None = Field(
+        default=None, description="only events of this environment; default every one"
+    )
+
+
+class WebhookRead(Model):
+    id: str
+    url: str
+    event_types: list[EventType]
+    environment_id: str | None
+    active: bool
+    created_at: datetime
+    deactivated_at: datetime | None
+
+
+class WebhookCreated(WebhookRead):
+    secret: str = Field(
+        description="whsec_<base64>: the signing key (Standard Webhooks); shown only here"
+    )
+
+
+class AttemptRead(Model):
+    number: int
+    attempted_at: datetime
+    status_code: int | None
+    latency_ms: float | None
+    response_excerpt: str | None = Field(description="the first 1 KB of the response body")
+    error: str | None
+
+
+class DeliveryRead(BaseModel):
+    id: str
+    webhook: str
+    event: str = Field(description="the event id, sent as webhook-id on every attempt")
+    event_type: EventType
+    subject: str | None
+    state: DeliveryState
+    next_attempt_at: datetime | None
+    last_status_code: int | None
+    last_error: str | None
+    created_at: datetime
+    finished_at: datetime | None
+    attempts: list[AttemptRead]
+
+    @classmethod
+    def of(cls, delivery: Delivery, event: Event, attempts: list[DeliveryAttempt]) -> DeliveryRead:
+        return cls(
+            id=delivery.id,
+            webhook=delivery.subscription_id,
+            event=event.id,
+            event_type=EventType(event.type),
+            subject=event.subject,
+            state=delivery.state,
+            next_attempt_at=(
+                delivery.next_attempt_at if delivery.state == DeliveryState.pending else None
+            ),
+            last_status_code=delivery.last_status_code,
+            last_error=delivery.last_error,
+            created_at=delivery.created_at,
+            finished_at=delivery.finished_at,
+            attempts=[AttemptRead.model_validate(a) for a in attempts],
+        )

@@ -2,16 +2,75 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from typing import Annotated
+
+from fastapi import APIRouter, File, Header, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 
-from app.api.deps import ReadKey, SessionDep, StorageDep
-from app.api.schemas.common import ERRORS
-from app.api.schemas.snapshots import SnapshotRead
-from app.core import snapshots
+from app.api.deps import CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
+from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.jobs import JobRead
+from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
+from app.core import ingest, snapshots
 from app.core.errors import Conflict
 
 router = APIRouter(tags=["snapshots"], responses=ERRORS)
+
+# The multipart parser's own ceiling; the configured limits (max_upload_files, ...) are
+# checked by the ingest service and are normally much lower.
+FORM_MAX_FILES = 10_000
+
+
+def _parts(files: list[UploadFile] | None) -> list[ingest.UploadPart]:
+    return [ingest.UploadPart(f.filename or "", f.file) for f in files or []]
+
+
+@router.post(
+    "/environments/{environment_id}/snapshots",
+    status_code=status.HTTP_202_ACCEPTED,
+    form_limits={"max_files": FORM_MAX_FILES},
+    responses={
+        409: {"model": ErrorOut, "description": "Idempotency-Key reused with other files"},
+        413: {"model": ErrorOut, "description": "over a file, byte, pixel or line limit"},
+        415: {"model": ErrorOut, "description": "unsupported file type"},
+    },
+)
+def upload_snapshot(
+    environment_id: str,
+    session: SessionDep,
+    storage: StorageDep,
+    settings: SettingsDep,
+    response: Response,
+    _key: CaptureKey,
+    images: Annotated[list[UploadFile] | None, File(description="JPEG or PNG photos")] = None,
+    detections: Annotated[
+        list[UploadFile] | None, File(description="YOLO .txt files, one per image stem")
+    ] = None,
+    cameras: Annotated[UploadFile | None, File(description="optional cameras.json")] = None,
+    archive: Annotated[
+        UploadFile | None, File(description=".zip, .tar or .tar.gz holding the same files")
+    ] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+) -> SnapshotAccepted:
+    """Upload a capture (loose files or one archive); a job reconstructs and compares it."""
+    result = ingest.create_snapshot(
+        session,
+        storage,
+        settings,
+        environment_id,
+        images=_parts(images),
+        detections=_parts(detections),
+        cameras=ingest.UploadPart(cameras.filename or "", cameras.file) if cameras else None,
+        archive=ingest.UploadPart(archive.filename or "", archive.file) if archive else None,
+        idempotency_key=idempotency_key,
+    )
+    response.headers["Location"] = f"/v1/jobs/{result.job.id}"
+    if not result.created:
+        response.headers["Idempotent-Replayed"] = "true"
+    return SnapshotAccepted(
+        snapshot=SnapshotRead.of(result.snapshot, result.job, None),
+        job=JobRead.of(result.job),
+    )
 
 
 @router.get("/snapshots/{snapshot_id}")

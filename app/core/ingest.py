@@ -1,0 +1,826 @@
+"""Snapshot ingest: validate an uploaded capture, store it, queue its job; and the worker's
+first stage, which re-reads the stored capture with the same parsers.
+
+An upload is either loose files (``images``, ``detections``, optional ``cameras``) or one
+archive (.zip, .tar, .tar.gz) holding the same files anywhere inside it. Everything is
+streamed in chunks into a private staging folder (archives member by member, never trusting
+declared sizes), validated there, and moved under ``snapshots/<id>/`` only once it all
+passed::
+
+    snapshots/<id>/images/<name>        JPEG or PNG
+    snapshots/<id>/labels/<stem>.txt    YOLO: class cx cy w h [confidence], 0..1
+    snapshots/<id>/cameras.json         optional
+
+A rejected upload raises a :class:`~app.core.errors.DomainError` naming the file (and line)
+and leaves nothing behind. The same ``Idempotency-Key`` with the same files (by name and
+SHA-256) returns the first snapshot and job; with other files it is a 409.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import re
+import shutil
+import stat
+import tarfile
+import zipfile
+import zlib
+from collections.abc import Collection, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Any, BinaryIO
+
+from PIL import Image, UnidentifiedImageError
+from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from app.core import environments, jobs, snapshots
+from app.core.enums import JobKind, SnapshotState
+from app.core.errors import (
+    Conflict,
+    DomainError,
+    InvalidInput,
+    PayloadTooLarge,
+    UnsupportedMedia,
+)
+from app.core.models import Environment, Job, Snapshot, SnapshotImage, new_id, utcnow
+from app.core.settings import Settings
+from app.core.storage import LocalStorage
+
+TASK = "snapshot.process"
+IMAGE_SUFFIXES = {".jpg", ".jpeg", ".png"}
+IMAGE_FORMATS = {"JPEG", "PNG"}
+LABEL_SUFFIX = ".txt"
+CAMERAS_NAME = "cameras.json"
+CLASSES_NAME = "classes.txt"
+CAMERAS_MAX_BYTES = 32 * 1024**2
+CLASSES_MAX_BYTES = 1024**2
+MAX_LINE_BYTES = 1024
+CAMERA_MODELS = {"PINHOLE": 4, "SIMPLE_RADIAL": 4, "OPENCV": 8}
+_SEQ_RETRIES = 5
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+# --- error codes (each names the file and, for text, the line) ------------------------------
+
+
+def _invalid(code: str, detail: str) -> InvalidInput:
+    return InvalidInput(detail, code=code)
+
+
+def _too_large(code: str, detail: str) -> PayloadTooLarge:
+    return PayloadTooLarge(detail, code=code)
+
+
+# --- data shapes ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class UploadPart:
+    """One uploaded file as the service sees it: the client's file name and a readable
+    stream (a spooled temporary file; read in chunks, never whole)."""
+
+    filename: str
+    source: BinaryIO
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """What the worker's ingest stage records for one stored image."""
+
+    name: str
+    file_key: str
+    width: int
+    height: int
+    size_bytes: int
+    labels_key: str | None
+    detections: list[dict[str, Any]]
+
+
+@dataclass
+class _Staged:
+    path: Path
+    where: str  # the name the client knows the file by (archive member or upload name)
+    size: int
+    sha256: str
+
+
+@dataclass
+class _Staging:
+    """Files written to the staging folder so far, with the request's running totals."""
+
+    root: Path
+    settings: Settings
+    images: dict[str, _Staged] = field(default_factory=dict)  # by file name
+    image_stems: dict[str, str] = field(default_factory=dict)  # stem -> file name
+    labels: dict[str, _Staged] = field(default_factory=dict)  # by stem
+    cameras: _Staged | None = None
+    classes: list[str] | None = None
+    classes_sha256: str | None = None
+    n_files: int = 0
+    n_bytes: int = 0
+
+    def digest(self) -> str:
+        """SHA-256 over the sorted (stored name, content SHA-256) pairs: the same files give
+        the same digest whether sent loose or in any archive."""
+        entries = [(f"images/{n}", s.sha256) for n, s in self.images.items()]
+        entries += [(f"labels/{stem}.txt", s.sha256) for stem, s in self.labels.items()]
+        if self.cameras is not None:
+            entries.append((CAMERAS_NAME, self.cameras.sha256))
+        if self.classes_sha256 is not None:
+            entries.append((CLASSES_NAME, self.classes_sha256))
+        h = hashlib.sha256()
+        for name, sha in sorted(entries):
+            h.update(f"{name}\0{sha}\n".encode())
+        return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class Ingested:
+    """The outcome of an upload: the snapshot, its job, and whether this request made them
+    (False for an idempotent replay)."""
+
+    snapshot: Snapshot
+    job: Job
+    created: bool
+
+
+# --- parsers shared by the upload and the worker's re-read ---------------------------------
+
+
+def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int]:
+    """Width and height of a JPEG or PNG after checking that it decodes.
+
+    The pixel count comes from the header (``Image.open`` reads nothing else) and is checked
+    before any decoding; JPEGs decode at 1/8 scale (``Image.draft``), PNGs are verified
+    (chunk CRCs) and then decoded. ``ImageTooLarge`` (413) or ``InvalidImage`` (422).
+    """
+    try:
+        with Image.open(source) as img:
+            fmt = img.format
+            width, height = img.size
+            if fmt not in IMAGE_FORMATS:
+                raise _invalid("InvalidImage", f"{where}: not a JPEG or PNG image ({fmt})")
+            _check_pixels(width, height, where, max_pixels)
+            if fmt == "JPEG":
+                img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
+                img.load()
+            else:
+                img.verify()
+        if fmt == "PNG":
+            source.seek(0)
+            with Image.open(source) as img:
+                img.load()
+    except Image.DecompressionBombError as exc:
+        raise _too_large("ImageTooLarge", f"{where}: {exc}") from exc
+    except DomainError:
+        raise
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
+        raise _invalid("InvalidImage", f"{where}: not a readable JPEG or PNG ({exc})") from exc
+    return width, height
+
+
+def _check_pixels(width: int, height: int, where: str, max_pixels: int) -> None:
+    if width <= 0 or height <= 0:
+        raise _invalid("InvalidImage", f"{where}: empty image ({width}×{height})")
+    if width * height > max_pixels:
+        raise _too_large(
+            "ImageTooLarge",
+            f"{where}: {width}×{height} = {width * height} pixels, more than the limit "
+            f"of {max_pixels}",
+        )
+
+
+def parse_detections(
+    source: BinaryIO, where: str, classes: Sequence[str], max_lines: int
+) -> list[dict[str, Any]]:
+    """YOLO lines ``class cx cy w h [confidence]`` → detection dicts
+    ``{"class_id", "class", "cx", "cy", "w", "h", "confidence"}`` (confidence None when
+    absent). Blank lines are skipped. Errors name ``where`` and the line number:
+    ``InvalidDetections``, ``UnknownClass`` (422), ``TooManyDetections`` (413)."""
+    out: list[dict[str, Any]] = []
+    for number, line in _lines(source, where):
+        parts = line.split()
+        if not parts:
+            continue
+        if len(out) >= max_lines:
+            raise _too_large(
+                "TooManyDetections", f"{where} line {number}: more than {max_lines} detections"
+            )
+        if len(parts) not in (5, 6):
+            raise _invalid(
+                "InvalidDetections",
+                f"{where} line {number}: expected 5 or 6 numbers "
+                f"(class cx cy w h [confidence]), got {len(parts)}",
+            )
+        values: list[float] = []
+        for token in parts:
+            try:
+                values.append(float(token))
+            except ValueError:
+                raise _invalid(
+                    "InvalidDetections", f"{where} line {number}: {token!r} is not a number"
+                ) from None
+        raw_class = values[0]
+        if not raw_class.is_integer():
+            raise _invalid(
+                "InvalidDetections",
+                f"{where} line {number}: class id {parts[0]!r} is not an integer",
+            )
+        class_id = int(raw_class)
+        if not 0 <= class_id < len(classes):
+            raise _invalid(
+                "UnknownClass",
+                f"{where} line {number}: class id {class_id} is not one of the environment's "
+                f"{len(classes)} classes (0..{len(classes) - 1})",
+            )
+        names = ("cx", "cy", "w", "h", "confidence")
+        for name, value in zip(names, values[1:], strict=False):
+            if not (math.isfinite(value) and 0.0 <= value <= 1.0):
+                raise _invalid(
+                    "InvalidDetections",
+                    f"{where} line {number}: {name} = {value} is outside 0..1",
+                )
+        cx, cy, w, h = values[1:5]
+        out.append(
+            {
+                "class_id": class_id,
+                "class": classes[class_id],
+                "cx": cx,
+                "cy": cy,
+                "w": w,
+                "h": h,
+                "confidence": values[5] if len(values) == 6 else None,
+            }
+        )
+    return out
+
+
+def _lines(source: BinaryIO, where: str) -> Iterator[tuple[int, str]]:
+    """Numbered text lines, read one at a time with a bounded length."""
+    number = 0
+    while raw := source.readline(MAX_LINE_BYTES + 1):
+        number += 1
+        if len(raw) > MAX_LINE_BYTES:
+            raise _invalid(
+                "InvalidDetections",
+                f"{where} line {number}: longer than {MAX_LINE_BYTES} bytes",
+            )
+        if number == 1 and raw.startswith(b"\xef\xbb\xbf"):
+            raw = raw[3:]
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise _invalid("InvalidDetections", f"{where} line {number}: not UTF-8 text") from None
+        yield number, text
+
+
+def parse_cameras(source: BinaryIO, where: str, image_names: Collection[str]) -> dict[str, Any]:
+    """Validate cameras.json: ``intrinsics`` and/or ``intrinsics_per_image`` (model
+    PINHOLE | SIMPLE_RADIAL | OPENCV with 4, 4, 8 params, positive width and height), and
+    optional ``poses`` (4×4 rigid ``env_from_cam`` per image). Every named image must exist.
+    Returns the normalised document; ``InvalidCameras`` (422) otherwise."""
+    data = source.read(CAMERAS_MAX_BYTES + 1)
+    if len(data) > CAMERAS_MAX_BYTES:
+        raise _too_large("PayloadTooLarge", f"{where}: larger than {CAMERAS_MAX_BYTES} bytes")
+    try:
+        doc = json.loads(data.decode("utf-8-sig"))
+    except UnicodeDecodeError as exc:
+        raise _invalid("InvalidCameras", f"{where}: not UTF-8 text") from exc
+    except json.JSONDecodeError as exc:
+        raise _invalid(
+            "InvalidCameras",
+            f"{where} line {exc.lineno} column {exc.colno}: not JSON ({exc.msg})",
+        ) from exc
+    if not isinstance(doc, dict):
+        raise _invalid("InvalidCameras", f"{where}: expected a JSON object")
+    unknown = sorted(set(doc) - {"intrinsics", "intrinsics_per_image", "poses"})
+    if unknown:
+        raise _invalid("InvalidCameras", f"{where}: unknown keys {unknown}")
+    if "intrinsics" not in doc and "intrinsics_per_image" not in doc:
+        raise _invalid("InvalidCameras", f"{where}: give 'intrinsics' or 'intrinsics_per_image'")
+    out: dict[str, Any] = {}
+    if "intrinsics" in doc:
+        out["intrinsics"] = _check_intrinsics(doc["intrinsics"], f"{where}: intrinsics")
+    if "intrinsics_per_image" in doc:
+        per_image = _named_map(doc["intrinsics_per_image"], where, "intrinsics_per_image")
+        out["intrinsics_per_image"] = {
+            name: _check_intrinsics(value, f"{where}: intrinsics_per_image[{name!r}]")
+            for name, value in per_image.items()
+        }
+        _check_names(per_image, image_names, where, "intrinsics_per_image")
+    if "poses" in doc:
+        poses = _named_map(doc["poses"], where, "poses")
+        _check_names(poses, image_names, where, "poses")
+        checked: dict[str, list[list[float]]] = {}
+        for name, pose in poses.items():
+            try:
+                checked[name] = environments.check_rigid(pose, f"{where}: poses[{name!r}]")
+            except InvalidInput as exc:
+                raise _invalid("InvalidCameras", exc.detail) from exc
+        out["poses"] = checked
+    return out
+
+
+def _named_map(value: Any, where: str, key: str) -> dict[str, Any]:
+    if not isinstance(value, dict) or not value:
+        raise _invalid("InvalidCameras", f"{where}: {key} must be a non-empty object by image name")
+    return value
+
+
+def _check_names(named: dict[str, Any], image_names: Collection[str], where: str, key: str) -> None:
+    missing = sorted(set(named) - set(image_names))
+    if missing:
+        raise _invalid(
+            "InvalidCameras", f"{where}: {key} names images that were not uploaded: {missing[:5]}"
+        )
+
+
+def _check_intrinsics(value: Any, where: str) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise _invalid("InvalidCameras", f"{where}: expected {{model, width, height, params}}")
+    model = value.get("model")
+    if model not in CAMERA_MODELS:
+        raise _invalid(
+            "InvalidCameras", f"{where}: model {model!r} is not one of {sorted(CAMERA_MODELS)}"
+        )
+    size = []
+    for key in ("width", "height"):
+        dim = value.get(key)
+        if not isinstance(dim, int) or isinstance(dim, bool) or dim <= 0:
+            raise _invalid("InvalidCameras", f"{where}: {key} must be a positive integer")
+        size.append(dim)
+    params = value.get("params")
+    expected = CAMERA_MODELS[model]
+    if not isinstance(params, list) or len(params) != expected:
+        raise _invalid(
+            "InvalidCameras", f"{where}: model {model} takes {expected} params, got {params!r}"
+        )
+    if not all(
+        isinstance(p, int | float) and not isinstance(p, bool) and math.isfinite(p) for p in params
+    ):
+        raise _invalid("InvalidCameras", f"{where}: params must be finite numbers")
+    return {
+        "model": model,
+        "width": size[0],
+        "height": size[1],
+        "params": [float(p) for p in params],
+    }
+
+
+def parse_classes(source: BinaryIO, where: str, classes: Sequence[str]) -> list[str]:
+    """classes.txt (one name per line) must list the environment's classes in order;
+    ``ClassesMismatch`` (422) names the first line that differs."""
+    names = [line.strip() for _, line in _lines(source, where)]
+    while names and not names[-1]:
+        names.pop()
+    for number, (got, want) in enumerate(zip(names, classes, strict=False), start=1):
+        if got != want:
+            raise _invalid(
+                "ClassesMismatch",
+                f"{where} line {number}: {got!r}, but the environment's class {number - 1} "
+                f"is {want!r}",
+            )
+    if len(names) != len(classes):
+        raise _invalid(
+            "ClassesMismatch",
+            f"{where}: {len(names)} classes, the environment has {len(classes)}",
+        )
+    return names
+
+
+# --- staging --------------------------------------------------------------------------------
+
+
+def _file_name(raw: str, where: str) -> str:
+    """The base name of an uploaded file; rejects empty, control characters, dot names."""
+    name = raw.replace("\\", "/").rsplit("/", 1)[-1]
+    if not name or name.startswith(".") or _CONTROL.search(name) or len(name.encode()) > 255:
+        raise _invalid("InvalidFileName", f"{where}: {raw!r} is not a usable file name")
+    return name
+
+
+def _stage_file(staging: _Staging, kind: str, name: str, where: str, source: BinaryIO) -> _Staged:
+    """Copy ``source`` into the staging folder in chunks, within the per-file and per-request
+    byte limits and the file-count limit."""
+    settings = staging.settings
+    staging.n_files += 1
+    if staging.n_files > settings.max_upload_files:
+        raise _too_large(
+            "TooManyFiles", f"{where}: more than {settings.max_upload_files} files in one upload"
+        )
+    remaining = settings.max_upload_bytes - staging.n_bytes
+    limit = min(settings.max_file_bytes, remaining)
+    target = staging.root / kind / name if kind else staging.root / name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    digest = hashlib.sha256()
+    size = 0
+    with target.open("wb") as out:
+        while chunk := source.read(1024 * 1024):
+            size += len(chunk)
+            if size > limit:
+                if limit == settings.max_file_bytes:
+                    detail = f"{where}: larger than {settings.max_file_bytes} bytes"
+                else:
+                    detail = f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
+                raise _too_large("PayloadTooLarge", detail)
+            digest.update(chunk)
+            out.write(chunk)
+    staging.n_bytes += size
+    return _Staged(path=target, where=where, size=size, sha256=digest.hexdigest())
+
+
+def _add(staging: _Staging, raw_name: str, where: str, source: BinaryIO, role: str | None) -> None:
+    """Stage one file by its role (``images``, ``detections``, ``cameras``) or, for archive
+    members (role None), by its name: images by suffix, ``cameras.json``, ``classes.txt``,
+    other ``.txt`` files as detections."""
+    name = _file_name(raw_name, where)
+    lower = name.lower()
+    suffix = PurePosixPath(lower).suffix
+    if role is None:
+        if lower == CAMERAS_NAME:
+            role = "cameras"
+        elif lower == CLASSES_NAME:
+            role = "classes"
+        elif suffix in IMAGE_SUFFIXES:
+            role = "images"
+        elif suffix == LABEL_SUFFIX:
+            role = "detections"
+        else:
+            raise UnsupportedMedia(
+                f"{where}: unsupported file type (images are .jpg .jpeg .png, detections .txt, "
+                "plus optional cameras.json and classes.txt)",
+                code="UnsupportedFileType",
+            )
+    if role == "images":
+        if suffix not in IMAGE_SUFFIXES:
+            raise UnsupportedMedia(
+                f"{where}: images must be .jpg, .jpeg or .png", code="UnsupportedFileType"
+            )
+        stem = PurePosixPath(name).stem
+        clash = staging.image_stems.get(stem)
+        if clash is not None:
+            raise _invalid(
+                "DuplicateImage", f"{where}: another image ({clash}) has the same stem {stem!r}"
+            )
+        staging.image_stems[stem] = name
+        staging.images[name] = _stage_file(staging, "images", name, where, source)
+    elif role == "detections":
+        if suffix != LABEL_SUFFIX:
+            raise UnsupportedMedia(
+                f"{where}: detections must be YOLO .txt files", code="UnsupportedFileType"
+            )
+        stem = PurePosixPath(name).stem
+        if stem in staging.labels:
+            raise _invalid("DuplicateDetections", f"{where}: a second detection file for {stem!r}")
+        staging.labels[stem] = _stage_file(staging, "labels", f"{stem}.txt", where, source)
+    elif role == "cameras":
+        if staging.cameras is not None:
+            raise _invalid("InvalidCameras", f"{where}: a second cameras.json")
+        staging.cameras = _stage_file(staging, "", CAMERAS_NAME, where, source)
+    else:  # classes.txt: checked against the environment, not stored
+        if staging.classes_sha256 is not None:
+            raise _invalid("ClassesMismatch", f"{where}: a second classes.txt")
+        staged = _stage_file(staging, "", ".classes.txt", where, source)
+        staging.classes_sha256 = staged.sha256
+
+
+def _unsafe(member: str, why: str) -> InvalidInput:
+    return _invalid("UnsafeArchiveMember", f"archive member {member!r}: {why}")
+
+
+def _member_path(name: str) -> PurePosixPath | None:
+    """A safe relative member path, or None for entries to skip (folders, macOS extras)."""
+    norm = name.replace("\\", "/")
+    path = PurePosixPath(norm)
+    if norm.startswith("/") or re.match(r"^[A-Za-z]:", norm):
+        raise _unsafe(name, "absolute path")
+    if ".." in path.parts:
+        raise _unsafe(name, "path with '..'")
+    if "\x00" in norm:
+        raise _unsafe(name, "NUL in the name")
+    if not path.parts or norm.endswith("/"):
+        return None
+    if "__MACOSX" in path.parts or path.name.startswith(".") or path.name == "Thumbs.db":
+        return None
+    return path
+
+
+def _stage_zip(staging: _Staging, source: BinaryIO, where: str) -> None:
+    try:
+        archive = zipfile.ZipFile(source)
+    except (zipfile.BadZipFile, OSError, ValueError) as exc:
+        raise _invalid("InvalidArchive", f"{where}: not a readable zip ({exc})") from exc
+    with archive:
+        infos = archive.infolist()
+        files = [i for i in infos if not i.is_dir()]
+        if len(files) > staging.settings.max_upload_files:
+            raise _too_large(
+                "TooManyFiles",
+                f"{where}: {len(files)} members, more than {staging.settings.max_upload_files}",
+            )
+        declared = sum(i.file_size for i in files)
+        if declared > staging.settings.max_upload_bytes:
+            raise _too_large(
+                "PayloadTooLarge",
+                f"{where}: unpacks to {declared} bytes, more than "
+                f"{staging.settings.max_upload_bytes}",
+            )
+        for info in infos:
+            mode = info.external_attr >> 16
+            if mode and stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
+                raise _unsafe(info.filename, "not a regular file (link or device)")
+            path = _member_path(info.filename)
+            if path is None or info.is_dir():
+                continue
+            if info.flag_bits & 0x1:
+                raise _invalid("InvalidArchive", f"{where}: member {info.filename!r} is encrypted")
+            try:
+                with archive.open(info) as member:
+                    _add(staging, path.name, info.filename, member, None)  # type: ignore[arg-type]
+            except (zipfile.BadZipFile, zlib.error, OSError, NotImplementedError) as exc:
+                raise _invalid(
+                    "InvalidArchive", f"{where}: member {info.filename!r} is damaged ({exc})"
+                ) from exc
+
+
+def _stage_tar(staging: _Staging, source: BinaryIO, where: str) -> None:
+    try:
+        with tarfile.open(fileobj=source, mode="r|*") as archive:
+            for member in archive:
+                if not (member.isfile() or member.isdir()):
+                    raise _unsafe(member.name, "not a regular file (link or device)")
+                path = _member_path(member.name)
+                if path is None or member.isdir():
+                    continue
+                extracted = archive.extractfile(member)
+                if extracted is None:
+                    raise _unsafe(member.name, "not a regular file")
+                with extracted:
+                    _add(staging, path.name, member.name, extracted, None)  # type: ignore[arg-type]
+    except (tarfile.TarError, EOFError, zlib.error, OSError) as exc:
+        raise _invalid("InvalidArchive", f"{where}: not a readable tar ({exc})") from exc
+
+
+def _stage_archive(staging: _Staging, archive: UploadPart) -> None:
+    where = archive.filename or "archive"
+    lower = where.lower()
+    if lower.endswith(".zip"):
+        _stage_zip(staging, archive.source, where)
+    elif lower.endswith((".tar", ".tar.gz", ".tgz")):
+        _stage_tar(staging, archive.source, where)
+    else:
+        raise UnsupportedMedia(
+            f"{where}: the archive must be .zip, .tar or .tar.gz", code="UnsupportedFileType"
+        )
+
+
+# --- validation -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Checked:
+    n_detections: int
+
+
+def _validate(staging: _Staging, classes: Sequence[str]) -> _Checked:
+    """Every check that needs the whole capture: counts, orphans, images, detections,
+    cameras and classes.txt."""
+    settings = staging.settings
+    if len(staging.images) < settings.min_images:
+        raise _invalid(
+            "TooFewImages",
+            f"{len(staging.images)} images; a snapshot needs at least {settings.min_images}",
+        )
+    for stem, labels in sorted(staging.labels.items()):
+        if stem not in staging.image_stems:
+            raise _invalid("OrphanDetections", f"{labels.where}: no image with the stem {stem!r}")
+    for image in staging.images.values():
+        with image.path.open("rb") as fh:
+            probe_image(fh, image.where, settings.max_image_pixels)
+    n_detections = 0
+    for labels in staging.labels.values():
+        with labels.path.open("rb") as fh:
+            n_detections += len(
+                parse_detections(fh, labels.where, classes, settings.max_detection_lines)
+            )
+    if staging.cameras is not None:
+        with staging.cameras.path.open("rb") as fh:
+            parse_cameras(fh, staging.cameras.where, staging.images.keys())
+    classes_file = staging.root / ".classes.txt"
+    if classes_file.exists():
+        with classes_file.open("rb") as fh:
+            parse_classes(fh, CLASSES_NAME, classes)
+        classes_file.unlink()
+    return _Checked(n_detections=n_detections)
+
+
+# --- the upload -----------------------------------------------------------------------------
+
+
+def create_snapshot(
+    session: Session,
+    storage: LocalStorage,
+    settings: Settings,
+    environment_id: str,
+    *,
+    images: Sequence[UploadPart] = (),
+    detections: Sequence[UploadPart] = (),
+    cameras: UploadPart | None = None,
+    archive: UploadPart | None = None,
+    idempotency_key: str | None = None,
+) -> Ingested:
+    """Validate and store an uploaded capture, insert its snapshot (state ``uploaded``, the
+    environment's next ``seq``) and queue ``snapshot.process`` after commit.
+
+    Give loose files (``images``, ``detections``, ``cameras``) or one ``archive``. Errors are
+    DomainErrors naming the file and line; nothing is stored when one is raised.
+    """
+    env = environments.get(session, environment_id)
+    if archive is not None and (images or detections or cameras is not None):
+        raise _invalid(
+            "InvalidUpload", "send either an archive or images/detections/cameras, not both"
+        )
+    if archive is None and not images:
+        raise _invalid("InvalidUpload", "no images: send 'images' files or one 'archive'")
+    if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
+        raise _invalid("InvalidUpload", "Idempotency-Key: 1 to 200 characters")
+
+    staging_dir = storage.tmp_dir()
+    try:
+        staging = _Staging(root=staging_dir, settings=settings)
+        if archive is not None:
+            _stage_archive(staging, archive)
+        else:
+            for part in images:
+                _add(staging, part.filename, part.filename, part.source, "images")
+            for part in detections:
+                _add(staging, part.filename, part.filename, part.source, "detections")
+            if cameras is not None:
+                _add(
+                    staging,
+                    CAMERAS_NAME,
+                    cameras.filename or CAMERAS_NAME,
+                    cameras.source,
+                    "cameras",
+                )
+        digest = staging.digest()
+        if idempotency_key is not None:
+            replay = _replay(session, env.id, idempotency_key, digest)
+            if replay is not None:
+                return replay
+        checked = _validate(staging, env.classes)
+        return _insert(session, storage, env, staging, checked, idempotency_key, digest)
+    finally:
+        shutil.rmtree(staging_dir, ignore_errors=True)
+
+
+def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ingested | None:
+    """The snapshot an earlier request with this key made, when the files are the same;
+    409 ``IdempotencyKeyReused`` when they differ; None when the key is new."""
+    snap = session.scalar(
+        select(Snapshot).where(
+            Snapshot.environment_id == environment_id, Snapshot.idempotency_key == key
+        )
+    )
+    if snap is None:
+        return None
+    if snap.request_digest != digest:
+        raise Conflict(
+            f"Idempotency-Key {key!r} was used for snapshot {snap.id} with different files",
+            code="IdempotencyKeyReused",
+        )
+    job = snapshots.job_of(session, snap.id)
+    if job is None:  # the job is created in the snapshot's transaction; never expected
+        raise Conflict(f"snapshot {snap.id} has no job", code="IdempotencyKeyReused")
+    return Ingested(snapshot=snap, job=job, created=False)
+
+
+def _insert(
+    session: Session,
+    storage: LocalStorage,
+    env: Environment,
+    staging: _Staging,
+    checked: _Checked,
+    idempotency_key: str | None,
+    digest: str,
+) -> Ingested:
+    # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
+    session.execute(select(Environment.id).where(Environment.id == env.id).with_for_update())
+    snapshot_id = new_id()
+    prefix = f"snapshots/{snapshot_id}"
+    snap: Snapshot | None = None
+    for _ in range(_SEQ_RETRIES):
+        if idempotency_key is not None:
+            replay = _replay(session, env.id, idempotency_key, digest)
+            if replay is not None:
+                return replay
+        seq = (
+            session.scalar(select(func.max(Snapshot.seq)).where(Snapshot.environment_id == env.id))
+            or 0
+        ) + 1
+        candidate = Snapshot(
+            id=snapshot_id,
+            environment_id=env.id,
+            seq=seq,
+            state=SnapshotState.uploaded,
+            idempotency_key=idempotency_key,
+            request_digest=digest,
+            storage_prefix=prefix,
+            n_images=len(staging.images),
+            n_detections=checked.n_detections,
+            upload_bytes=staging.n_bytes,
+            has_cameras=staging.cameras is not None,
+            cameras_key=f"{prefix}/{CAMERAS_NAME}" if staging.cameras is not None else None,
+        )
+        try:
+            with session.begin_nested():
+                session.add(candidate)
+                session.flush()
+        except IntegrityError:  # a concurrent upload took the seq or the key: look again
+            continue
+        snap = candidate
+        break
+    if snap is None:
+        raise Conflict(
+            f"environment {env.id}: too many concurrent uploads, try again",
+            code="ConcurrentUpload",
+        )
+    try:
+        storage.move_in(staging.root, prefix)
+        job = jobs.create(
+            session, JobKind.snapshot, TASK, environment_id=env.id, snapshot_id=snap.id
+        )
+    except BaseException:
+        storage.delete_prefix(prefix)
+        raise
+    return Ingested(snapshot=snap, job=job, created=True)
+
+
+# --- the worker's ingest stage --------------------------------------------------------------
+
+
+def read_capture(
+    storage: LocalStorage, prefix: str, classes: Sequence[str], settings: Settings
+) -> list[ImageRecord]:
+    """Re-read a stored capture: each image's size (checked as on upload) and its detections,
+    sorted by image name. Raises the upload's DomainErrors if the files changed since."""
+    images_dir = storage.path(f"{prefix}/images")
+    records: list[ImageRecord] = []
+    for path in sorted(p for p in images_dir.iterdir() if p.is_file()):
+        if path.name.startswith(".") or path.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        file_key = f"{prefix}/images/{path.name}"
+        with storage.open(file_key) as fh:
+            width, height = probe_image(fh, file_key, settings.max_image_pixels)
+        labels_key: str | None = f"{prefix}/labels/{path.stem}.txt"
+        detections: list[dict[str, Any]] = []
+        if labels_key is not None and storage.exists(labels_key):
+            with storage.open(labels_key) as fh:
+                detections = parse_detections(fh, labels_key, classes, settings.max_detection_lines)
+        else:
+            labels_key = None
+        records.append(
+            ImageRecord(
+                name=path.name,
+                file_key=file_key,
+                width=width,
+                height=height,
+                size_bytes=path.stat().st_size,
+                labels_key=labels_key,
+                detections=detections,
+            )
+        )
+    return records
+
+
+def record_images(session: Session, snapshot_id: str, records: Sequence[ImageRecord]) -> None:
+    """Upsert one SnapshotImage row per record (by name) and drop rows of images no longer
+    there, then set the snapshot's counts: running it twice changes nothing."""
+    snap = snapshots.get(session, snapshot_id)
+    existing = {
+        row.name: row
+        for row in session.scalars(
+            select(SnapshotImage).where(SnapshotImage.snapshot_id == snapshot_id)
+        )
+    }
+    now = utcnow()
+    for record in records:
+        row = existing.pop(record.name, None)
+        if row is None:
+            row = SnapshotImage(snapshot_id=snapshot_id, name=record.name)
+            session.add(row)
+        row.file_key = record.file_key
+        row.labels_key = record.labels_key
+        row.width, row.height = record.width, record.height
+        row.size_bytes = record.size_bytes
+        row.detections = list(record.detections)
+        row.verified_at = now
+    for stale in existing.values():
+        session.delete(stale)
+    snap.n_images = len(records)
+    snap.n_detections = sum(len(r.detections) for r in records)
+    session.flush()

@@ -1,0 +1,592 @@
+"""Webhooks without Celery: signatures, fan-out, the claim/send/record cycle against a real
+HTTP receiver on loopback, retries on the database schedule, ordering per environment,
+leases, target checks.
+
+``drive()`` plays worker and beat in this process: it runs every ``webhooks.deliver`` the
+code sent after commit (the deliver task's three steps) and the dispatcher, until the
+deliveries are final."""
+
+from __future__ import annotations
+
+import base64
+import ipaddress
+import itertools
+import json
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from datetime import timedelta
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+import pytest
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core import db, events, webhooks
+from app.core.enums import DeliveryState, EventType
+from app.core.errors import InvalidInput
+from app.core.models import Delivery, DeliveryAttempt, Environment, utcnow
+from app.core.settings import get_settings
+from tests.app.conftest import SentTasks
+
+# --- a real receiver on loopback --------------------------------------------------------------
+
+
+@dataclass
+class Hit:
+    path: str
+    headers: dict[str, str]
+    body: bytes
+    at: float
+    status: int
+    done_at: float = 0.0
+
+    @property
+    def event(self) -> dict[str, Any]:
+        out: dict[str, Any] = json.loads(self.body)
+        return out
+
+
+@dataclass
+class Receiver:
+    """An HTTP server in a thread. ``plan(path, [500, 500])`` makes the next answers on
+    ``path`` 500, 500, then 200; ``delay`` sleeps before answering."""
+
+    port: int = 0
+    hits: list[Hit] = field(default_factory=list)
+    plans: dict[str, list[int]] = field(default_factory=dict)
+    delays: dict[str, list[float]] = field(default_factory=dict)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    server: ThreadingHTTPServer | None = None
+
+    def start(self) -> Receiver:
+        receiver = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def do_POST(self) -> None:
+                body = self.rfile.read(int(self.headers.get("content-length", "0")))
+                with receiver.lock:
+                    plan = receiver.plans.get(self.path, [])
+                    status = plan.pop(0) if plan else 200
+                    delays = receiver.delays.get(self.path, [])
+                    delay = delays.pop(0) if delays else 0.0
+                    hit = Hit(
+                        self.path,
+                        {k.lower(): v for k, v in self.headers.items()},
+                        body,
+                        time.monotonic(),
+                        status,
+                    )
+                    receiver.hits.append(hit)
+                time.sleep(delay)
+                answer = json.dumps({"status": status, "pad": "x" * 3000}).encode()
+                self.send_response(status)
+                self.send_header("content-length", str(len(answer)))
+                self.end_headers()
+                self.wfile.write(answer)
+                hit.done_at = time.monotonic()
+
+            def log_message(self, *args: object) -> None:
+                pass
+
+        ThreadingHTTPServer.allow_reuse_address = True
+        self.server = ThreadingHTTPServer(("127.0.0.1", self.port), Handler)
+        self.server.daemon_threads = True
+        self.port = self.server.server_address[1]
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+        return self
+
+    def stop(self) -> None:
+        if self.server is not None:
+            self.server.shutdown()
+            self.server.server_close()
+            self.server = None
+
+    def url(self, path: str = "/hook") -> str:
+        return f"http://127.0.0.1:{self.port}{path}"
+
+    def plan(self, path: str, statuses: list[int], delays: list[float] | None = None) -> None:
+        with self.lock:
+            self.plans[path] = list(statuses)
+            self.delays[path] = list(delays or [])
+
+    def on(self, path: str) -> list[Hit]:
+        with self.lock:
+            return [h for h in self.hits if h.path == path]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port: int = s.getsockname()[1]
+        return port
+
+
+@pytest.fixture
+def receiver() -> Iterator[Receiver]:
+    r = Receiver().start()
+    yield r
+    r.stop()
+
+
+@pytest.fixture
+def webhook_settings(data_dir: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A short retry schedule, loopback allowed, a short timeout."""
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_RETRY_SCHEDULE_S", "[0.2, 0.2, 0.2]")
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_ALLOWED_NETWORKS", '["127.0.0.0/8"]')
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_TIMEOUT_S", "3")
+    get_settings.cache_clear()
+
+
+# --- helpers -------------------------------------------------------------------------------
+
+
+def make_env(factory: sessionmaker[Session], name: str = "line-1") -> str:
+    with factory.begin() as s:
+        env = Environment(name=name, classes=["power_drill"])
+        s.add(env)
+        s.flush()
+        return env.id
+
+
+def subscribe(
+    factory: sessionmaker[Session],
+    url: str,
+    *,
+    types: list[EventType] | None = None,
+    environment_id: str | None = None,
+) -> tuple[str, str]:
+    with factory.begin() as s:
+        sub = webhooks.create_subscription(
+            s, get_settings(), url=url, event_types=types, environment_id=environment_id
+        )
+        return sub.id, sub.secret
+
+
+def record(
+    factory: sessionmaker[Session],
+    env_id: str | None,
+    n: int = 0,
+    event_type: EventType = EventType.comparison_completed,
+) -> str:
+    with factory.begin() as s:
+        return events.record(
+            s, event_type, environment_id=env_id, subject=f"comparisons/c{n}", data={"n": n}
+        ).id
+
+
+def deliver_once(delivery_id: str) -> str:
+    """The ``webhooks.deliver`` task: claim (short transaction) → send → record."""
+    settings = get_settings()
+    with db.transaction() as s:
+        claim = webhooks.claim(s, delivery_id, settings)
+    if claim is None:
+        return "skipped"
+    outcome = webhooks.send(claim, settings)
+    with db.transaction() as s:
+        return webhooks.record_attempt(s, claim, outcome, settings)
+
+
+def deliveries(factory: sessionmaker[Session], **where: Any) -> list[Delivery]:
+    with factory() as s:
+        query = select(Delivery).filter_by(**where).order_by(Delivery.seq, Delivery.id)
+        return list(s.scalars(query))
+
+
+def attempts_of(factory: sessionmaker[Session], delivery_id: str) -> list[DeliveryAttempt]:
+    with factory() as s:
+        query = select(DeliveryAttempt).where(DeliveryAttempt.delivery_id == delivery_id)
+        return list(s.scalars(query.order_by(DeliveryAttempt.number)))
+
+
+def drive(factory: sessionmaker[Session], sent: SentTasks, timeout_s: float = 10.0) -> list[str]:
+    """Worker and beat in one loop until no delivery is pending; returns the task results."""
+    results: list[str] = []
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        while sent.calls:
+            name, kwargs = sent.calls.pop(0)
+            if name == "webhooks.deliver":
+                results.append(deliver_once(kwargs["delivery_id"]))
+        if not deliveries(factory, state=DeliveryState.pending):
+            return results
+        with db.transaction() as s:
+            webhooks.dispatch_due(s)
+        time.sleep(0.02)
+    raise AssertionError(f"deliveries still pending after {timeout_s} s: {results}")
+
+
+# --- signatures ----------------------------------------------------------------------------
+
+
+def test_secret_and_signature_verify_and_fail() -> None:
+    secret = webhooks.new_secret()
+    assert secret.startswith("whsec_")
+    assert len(base64.b64decode(secret.removeprefix("whsec_"))) >= 24
+    body = b'{"specversion":"1.0","id":"e1"}'
+    now = int(time.time())
+    headers = webhooks.signed_headers(secret, "e1", body, now)
+    assert headers["webhook-signature"].startswith("v1,")
+    webhooks.verify_signature(secret, headers, body)
+    upper = {k.upper(): v for k, v in headers.items()}
+    webhooks.verify_signature(secret, upper, body)  # header names are case-insensitive
+    rotated = {**headers, "webhook-signature": "v1,bm9wZQ== " + headers["webhook-signature"]}
+    webhooks.verify_signature(secret, rotated, body)  # any one of several signatures
+    bad = [
+        (webhooks.new_secret(), headers, body, "wrong secret"),
+        (secret, headers, body + b" ", "tampered body"),
+        (secret, {**headers, "webhook-id": "e2"}, body, "other id"),
+        (secret, {k: v for k, v in headers.items() if k != "webhook-id"}, body, "missing id"),
+        (
+            secret,
+            {**headers, "webhook-signature": "v2," + headers["webhook-signature"][3:]},
+            body,
+            "unknown version",
+        ),
+    ]
+    for key, hdrs, payload, why in bad:
+        with pytest.raises(webhooks.WebhookVerificationError):
+            webhooks.verify_signature(key, hdrs, payload)
+            pytest.fail(why)
+    old = webhooks.signed_headers(secret, "e1", body, now - 301)
+    with pytest.raises(webhooks.WebhookVerificationError, match="tolerance"):
+        webhooks.verify_signature(secret, old, body)
+    webhooks.verify_signature(secret, old, body, tolerance_s=600)
+    future = webhooks.signed_headers(secret, "e1", body, now + 301)
+    with pytest.raises(webhooks.WebhookVerificationError, match="tolerance"):
+        webhooks.verify_signature(secret, future, body)
+
+
+# --- target addresses ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "ftp://93.184.216.34/x",
+        "file:///etc/passwd",
+        "javascript:alert(1)",
+        "http:///nohost",
+        "http://127.0.0.1:8000/hook",
+        "http://localhost/hook",
+        "http://10.1.2.3/hook",
+        "http://172.16.0.1/hook",
+        "http://192.168.1.10/hook",
+        "http://169.254.169.254/latest/meta-data",
+        "http://[::1]/hook",
+        "http://[fd00::1]/hook",
+        "http://[fe80::1]/hook",
+        "http://[::ffff:10.0.0.1]/hook",
+        "http://0.0.0.0/hook",
+    ],
+)
+def test_target_refused(url: str) -> None:
+    with pytest.raises(InvalidInput):
+        webhooks.check_target(url, [])
+
+
+def test_target_allow_list() -> None:
+    webhooks.check_target("https://93.184.216.34/hook", [])
+    webhooks.check_target("http://[2606:4700::1111]/hook", [])
+    loopback = webhooks.allowed_networks(
+        get_settings().model_copy(update={"webhook_allowed_networks": ["127.0.0.0/8"]})
+    )
+    webhooks.check_target("http://127.0.0.1:9/hook", loopback)
+    webhooks.check_target("http://localhost:9/hook", [*loopback, ipaddress.ip_network("::1")])
+    with pytest.raises(InvalidInput, match="non-public"):
+        webhooks.check_target("http://10.0.0.1/hook", loopback)
+
+
+# --- fan-out -------------------------------------------------------------------------------
+
+
+def test_fan_out_matches_type_environment_and_activity(
+    session_factory: sessionmaker[Session], sent_tasks: SentTasks, webhook_settings: None
+) -> None:
+    env_a, env_b = make_env(session_factory, "a"), make_env(session_factory, "b")
+    url = "http://127.0.0.1:9/hook"
+    every, _ = subscribe(session_factory, url)
+    only_a, _ = subscribe(session_factory, url, environment_id=env_a)
+    failed_only, _ = subscribe(session_factory, url, types=[EventType.job_failed])
+    gone, _ = subscribe(session_factory, url)
+    with session_factory.begin() as s:
+        webhooks.deactivate(s, gone)
+    sent_tasks.calls.clear()
+
+    event_a = record(session_factory, env_a)
+    event_b = record(session_factory, env_b)
+    event_fail = record(session_factory, None, event_type=EventType.job_failed)
+
+    def subs_of(event_id: str) -> set[str]:
+        return {d.subscription_id for d in deliveries(session_factory, event_id=event_id)}
+
+    assert subs_of(event_a) == {every, only_a}
+    assert subs_of(event_b) == {every}
+    assert subs_of(event_fail) == {every, failed_only}
+    assert sent_tasks.names() == ["webhooks.deliver"] * 5
+    keys = {d.ordering_key for d in deliveries(session_factory, subscription_id=every)}
+    assert keys == {f"{every}:{env_a}", f"{every}:{env_b}", f"{every}:-"}
+
+
+def test_nothing_sent_when_the_transaction_rolls_back(
+    session_factory: sessionmaker[Session], sent_tasks: SentTasks, webhook_settings: None
+) -> None:
+    env = make_env(session_factory)
+    subscribe(session_factory, "http://127.0.0.1:9/hook")
+    sent_tasks.calls.clear()
+    with pytest.raises(RuntimeError), session_factory.begin() as s:
+        events.record(s, EventType.job_failed, environment_id=env, subject=None, data={})
+        raise RuntimeError("the state change failed")
+    assert sent_tasks.calls == [] and deliveries(session_factory) == []
+
+
+# --- delivery against a real receiver --------------------------------------------------------
+
+
+def test_delivered_as_signed_cloudevent_with_data_verbatim(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env = make_env(session_factory)
+    sub_id, secret = subscribe(session_factory, receiver.url())
+    change = {
+        "type": "moved",
+        "object": "power_drill",
+        "instance_id": "i-1",
+        "pose": [[1.0, 0, 0, 0.5], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+        "previous_pose": [[1.0, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+        "pose_quality": {"fitness": 0.93, "inlier_rmse": 0.0021, "verified": True},
+    }
+    data = {"comparison": "c1", "changes": [change], "note": "ünïcode"}
+    with session_factory.begin() as s:
+        event = events.record(
+            s,
+            EventType.comparison_completed,
+            environment_id=env,
+            subject="comparisons/c1",
+            data=data,
+        )
+        event_id = event.id
+    assert drive(session_factory, sent_tasks) == ["succeeded"]
+
+    [hit] = receiver.on("/hook")
+    webhooks.verify_signature(secret, hit.headers, hit.body)
+    with pytest.raises(webhooks.WebhookVerificationError):
+        webhooks.verify_signature(webhooks.new_secret(), hit.headers, hit.body)
+    assert hit.headers["webhook-id"] == event_id
+    assert abs(int(hit.headers["webhook-timestamp"]) - time.time()) < 5
+    assert hit.headers["content-type"].startswith("application/cloudevents+json")
+    ce = hit.event
+    assert ce["specversion"] == "1.0" and ce["id"] == event_id
+    assert ce["type"] == "comparison.completed" and ce["subject"] == "comparisons/c1"
+    assert ce["source"] == f"/twindelta/environments/{env}"
+    assert ce["datacontenttype"] == "application/json"
+    assert ce["time"].endswith("Z") and "T" in ce["time"]
+    assert ce["data"] == data
+    [delivery] = deliveries(session_factory, subscription_id=sub_id)
+    assert delivery.state == DeliveryState.succeeded and delivery.last_status_code == 200
+    [attempt] = attempts_of(session_factory, delivery.id)
+    assert attempt.status_code == 200 and attempt.error is None
+    assert attempt.latency_ms is not None and 0 < attempt.latency_ms < 3000
+    assert attempt.response_excerpt is not None
+    assert len(attempt.response_excerpt.encode()) <= 1024  # the answer is ~3 KB
+
+
+def test_500_twice_then_200_arrives_three_times_with_one_id(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env = make_env(session_factory)
+    _, secret = subscribe(session_factory, receiver.url())
+    receiver.plan("/hook", [500, 500])
+    event_id = record(session_factory, env)
+    drive(session_factory, sent_tasks)
+
+    hits = receiver.on("/hook")
+    assert [h.status for h in hits] == [500, 500, 200]
+    assert {h.headers["webhook-id"] for h in hits} == {event_id}
+    for h in hits:
+        webhooks.verify_signature(secret, h.headers, h.body)
+    gaps = [b.at - a.at for a, b in itertools.pairwise(hits)]
+    assert all(g >= 0.2 * 0.8 - 0.01 for g in gaps), gaps  # the schedule, with jitter
+    [delivery] = deliveries(session_factory)
+    assert delivery.state == DeliveryState.succeeded and delivery.attempts == 3
+    log = attempts_of(session_factory, delivery.id)
+    assert [(a.number, a.status_code) for a in log] == [(1, 500), (2, 500), (3, 200)]
+    assert log[0].error == "HTTP 500" and log[2].error is None
+
+
+def test_down_receiver_dead_letters_then_redelivery_succeeds(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+) -> None:
+    env = make_env(session_factory)
+    port = free_port()  # nothing listens here
+    sub_id, _ = subscribe(session_factory, f"http://127.0.0.1:{port}/hook")
+    record(session_factory, env)
+    drive(session_factory, sent_tasks)
+    [delivery] = deliveries(session_factory)
+    assert delivery.state == DeliveryState.failed and delivery.finished_at is not None
+    log = attempts_of(session_factory, delivery.id)
+    assert len(log) == 1 + len(get_settings().webhook_retry_schedule_s)
+    assert all(a.status_code is None and "ConnectError" in (a.error or "") for a in log)
+
+    late = Receiver(port=port).start()  # the receiver comes back
+    try:
+        with session_factory.begin() as s:
+            webhooks.redeliver(s, sub_id, delivery.id)
+        assert drive(session_factory, sent_tasks) == ["succeeded"]
+        assert len(late.on("/hook")) == 1
+    finally:
+        late.stop()
+    [delivery] = deliveries(session_factory)
+    assert delivery.state == DeliveryState.succeeded and delivery.attempts == 5
+    assert [a.status_code for a in attempts_of(session_factory, delivery.id)][-1] == 200
+
+
+def test_order_per_environment_and_other_environments_not_blocked(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env_a, env_b = make_env(session_factory, "a"), make_env(session_factory, "b")
+    subscribe(session_factory, receiver.url())
+    receiver.plan("/hook", [500])  # the first event of environment a needs a retry
+    a1, a2, a3 = (record(session_factory, env_a, n) for n in (1, 2, 3))
+    b1 = record(session_factory, env_b, 4)
+    drive(session_factory, sent_tasks)
+
+    got = [(h.headers["webhook-id"], h.status) for h in receiver.on("/hook")]
+    of_a = [g for g in got if g[0] in {a1, a2, a3}]
+    assert of_a == [(a1, 500), (a1, 200), (a2, 200), (a3, 200)]
+    # environment b's event did not wait behind a's retry
+    assert got.index((b1, 200)) < got.index((a1, 200))
+
+
+def test_dispatcher_sends_only_due_heads(
+    session_factory: sessionmaker[Session], sent_tasks: SentTasks, webhook_settings: None
+) -> None:
+    env = make_env(session_factory)
+    subscribe(session_factory, f"http://127.0.0.1:{free_port()}/hook")
+    first, second = record(session_factory, env, 1), record(session_factory, env, 2)
+    d1, d2 = (deliveries(session_factory, event_id=e)[0].id for e in (first, second))
+    sent_tasks.calls.clear()
+    assert deliver_once(d2) == "retrying"  # asked for the second: the head (first) is sent
+    assert [a.number for a in attempts_of(session_factory, d1)] == [1]
+    assert attempts_of(session_factory, d2) == []
+    assert deliver_once(d2) == "skipped"  # the head is waiting for its retry; d2 waits too
+    now = utcnow()
+    with db.transaction() as s:
+        assert webhooks.dispatch_due(s, now) == []  # not due yet; d2 is not a head
+    with db.transaction() as s:
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=1)) == [d1]
+    with db.transaction() as s:  # already sent: not again until it seems lost
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=2)) == []
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=90)) == [d1]
+    assert sent_tasks.calls == [("webhooks.deliver", {"delivery_id": d1})] * 2
+
+
+def test_claim_is_exclusive_lease_expires_and_stale_attempt_is_fenced(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env = make_env(session_factory)
+    subscribe(session_factory, receiver.url())
+    record(session_factory, env)
+    [d] = deliveries(session_factory)
+    settings = get_settings()
+    now = utcnow()
+    with db.transaction() as s:
+        first = webhooks.claim(s, d.id, settings, now)
+    with db.transaction() as s:
+        assert webhooks.claim(s, d.id, settings, now) is None  # in flight: nobody else
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=1)) == []
+    assert first is not None and first.attempt == 1
+    # the worker holding attempt 1 dies; once its lease is over another worker takes it
+    later = now + timedelta(seconds=webhooks.lease_s(settings) + 1)
+    with db.transaction() as s:
+        assert webhooks.dispatch_due(s, later) == [d.id]
+        second = webhooks.claim(s, d.id, settings, later)
+    assert second is not None and second.attempt == 2
+    outcome = webhooks.send(second, settings)
+    with db.transaction() as s:
+        assert webhooks.record_attempt(s, second, outcome, settings) == "succeeded"
+    # the zombie attempt 1 finishes late: logged, but it cannot change the delivery
+    with db.transaction() as s:
+        bad = webhooks.Outcome(False, 500, 1.0, "late", "HTTP 500")
+        assert webhooks.record_attempt(s, first, bad, settings) == "lost"
+    [d] = deliveries(session_factory)
+    assert d.state == DeliveryState.succeeded and d.attempts == 2
+    assert len(receiver.on("/hook")) == 1
+
+
+def test_slow_receiver_does_not_block_another_subscription(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env = make_env(session_factory)
+    slow_sub, _ = subscribe(session_factory, receiver.url("/slow"))
+    fast_sub, _ = subscribe(session_factory, receiver.url("/fast"))
+    receiver.plan("/slow", [200], delays=[1.0])
+    record(session_factory, env)
+    [slow] = deliveries(session_factory, subscription_id=slow_sub)
+    [fast] = deliveries(session_factory, subscription_id=fast_sub)
+    settings = get_settings()
+    with db.transaction() as s:
+        claim = webhooks.claim(s, slow.id, settings)
+    assert claim is not None
+    result: list[webhooks.Outcome] = []
+    worker = threading.Thread(target=lambda: result.append(webhooks.send(claim, settings)))
+    started = time.monotonic()
+    worker.start()  # one worker is stuck on the slow receiver, holding no session
+    assert deliver_once(fast.id) == "succeeded"
+    assert time.monotonic() - started < 0.8 and worker.is_alive()
+    worker.join()
+    with db.transaction() as s:
+        assert webhooks.record_attempt(s, claim, result[0], settings) == "succeeded"
+
+
+def test_private_target_refused_again_at_delivery_time(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    env = make_env(session_factory)
+    subscribe(session_factory, receiver.url())
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_ALLOWED_NETWORKS", "[]")  # the operator revokes it
+    get_settings.cache_clear()
+    record(session_factory, env)
+    drive(session_factory, sent_tasks)
+    [d] = deliveries(session_factory)
+    assert d.state == DeliveryState.failed and receiver.on("/hook") == []
+    assert all("refused" in (a.error or "") for a in attempts_of(session_factory, d.id))
+
+
+def test_deactivate_ends_pending_deliveries(
+    session_factory: sessionmaker[Session], sent_tasks: SentTasks, webhook_settings: None
+) -> None:
+    env = make_env(session_factory)
+    sub_id, _ = subscribe(session_factory, f"http://127.0.0.1:{free_port()}/hook")
+    record(session_factory, env)
+    with session_factory.begin() as s:
+        webhooks.deactivate(s, sub_id)
+    [d] = deliveries(session_factory)
+    assert d.state == DeliveryState.failed and d.last_error == "subscription deactivated"
+    assert drive(session_factory, sent_tasks) == ["skipped"]
+    record(session_factory, env, 2)
+    assert len(deliveries(session_factory)) == 1  # nothing new for an inactive subscription

@@ -221,3 +221,12 @@ def test_pairing_rules_without_images() -> None:
     ]
     swap = next(c for c in changes if c.type == "swapped")
     assert swap.replaced_object == "crate" and swap.replaced_instance_id is None
+
+
+@pytest.mark.parametrize("preset", ["lod", "thesis"])
+def test_add_one_box_with_other_presets(before: CaptureData, preset: str) -> None:
+    res = run(before, [*BASE, crate(0.6, 0.8)], options=PRESETS[preset])
+    assert [(t, o) for t, o, _ in identified(res)] == [("added", "crate")]
+    assert res.distances["added"].threshold > 0
+    if preset == "lod":  # σ ≈ 1 mm noise, 8 mm spacing → LoD ≈ 9 mm; the box is 30 cm tall
+        assert 0.005 < res.distances["added"].threshold < 0.03

@@ -49,7 +49,7 @@ def render_depth_maps(capture: CaptureData, options: CompareOptions) -> list[Dep
     if len(pts) > options.zbuffer_max_points:
         rng = np.random.default_rng(options.seed)
         pts = pts[rng.choice(len(pts), options.zbuffer_max_points, replace=False)]
-    pts32 = pts.astype(np.float32)
+    pts32 = np.ascontiguousarray(pts.T, dtype=np.float32)  # (3, N) columns
     return [
         render_depth(cam, pts32, options.zbuffer_max_side, options.zbuffer_fill_px)
         for cam in capture.cameras
@@ -205,9 +205,9 @@ def compare_snapshots(
     report("compare.distances", 0.0)
     c2c = c2c_both_ways(before.points_env, after.points_env)
     lap("c2c")
-    nb = options.threshold.neighbours
-    stats_b: CloudStats = cloud_stats(c2c.tree_before, options.spacing_sample, nb, options.seed)
-    stats_a: CloudStats = cloud_stats(c2c.tree_after, options.spacing_sample, nb, options.seed)
+    nb, lod = options.threshold.neighbours, options.threshold.kind == "lod"
+    stats_b = cloud_stats(c2c.tree_before, options.spacing_sample, nb, options.seed, lod)
+    stats_a = cloud_stats(c2c.tree_after, options.spacing_sample, nb, options.seed, lod)
     lap("cloud_stats")
 
     report("compare.visibility", 0.2)
@@ -289,7 +289,7 @@ def compare_snapshots(
     stats = {
         "points": {"before": len(before.points_env), "after": len(after.points_env)},
         "spacing_m": {"before": stats_b.spacing, "after": stats_a.spacing},
-        "roughness_m": {"before": stats_b.roughness, "after": stats_a.roughness},
+        "roughness_m": {"before": stats_b.roughness, "after": stats_a.roughness} if lod else None,
         "candidates": n_cand,
         "candidates_seen": {"added": int(cand_added.size), "removed": int(cand_removed.size)},
         "timings_s": timings,

@@ -63,26 +63,33 @@ def _sample(n: int, size: int, seed: int) -> NDArray[np.int64]:
 
 
 def cloud_stats(
-    tree: cKDTree, sample: int = 20_000, neighbours: int = 16, seed: int = 0
+    tree: cKDTree,
+    sample: int = 20_000,
+    neighbours: int = 16,
+    seed: int = 0,
+    roughness: bool = True,
 ) -> CloudStats:
     """Spacing and roughness of the cloud in ``tree`` from a seeded sample of its points.
 
     Spacing: median distance to the nearest other point. Roughness: median over the sample
     of the RMS residual of the PCA plane through each point's ``neighbours`` nearest
-    points. Raises ComparisonError for clouds with fewer than ``neighbours`` points.
+    points (skipped, reported as nan, when ``roughness`` is False). Raises ComparisonError
+    for clouds with fewer than ``neighbours`` points.
     """
     data = np.asarray(tree.data)
     if len(data) < max(2, neighbours):
         raise ComparisonError(f"cloud has {len(data)} points; need at least {neighbours}")
     idx = _sample(len(data), sample, seed)
-    dist, nn = tree.query(data[idx], k=neighbours, workers=-1)
+    dist, nn = tree.query(data[idx], k=neighbours if roughness else 2, workers=-1)
     spacing = float(np.median(dist[:, 1]))
+    if not roughness:
+        return CloudStats(spacing=spacing, roughness=float("nan"))
     nb = data[nn]  # (S, k, 3)
     centred = nb - nb.mean(axis=1, keepdims=True)
     cov = np.einsum("ski,skj->sij", centred, centred) / neighbours
     smallest = np.linalg.eigvalsh(cov)[:, 0]
-    roughness = float(np.median(np.sqrt(np.clip(smallest, 0.0, None))))
-    return CloudStats(spacing=spacing, roughness=roughness)
+    sigma = float(np.median(np.sqrt(np.clip(smallest, 0.0, None))))
+    return CloudStats(spacing=spacing, roughness=sigma)
 
 
 def lod_threshold(

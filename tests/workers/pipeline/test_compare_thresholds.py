@@ -58,7 +58,7 @@ def test_cloud_stats_on_a_noisy_grid_plane() -> None:
 
 def test_lod_formula_and_spec() -> None:
     q, r = CloudStats(spacing=0.005, roughness=0.003), CloudStats(spacing=0.01, roughness=0.004)
-    expected = np.sqrt(1.96**2 * (0.003**2 + 0.004**2) + 0.01**2) + 0.002
+    expected = np.sqrt(1.96**2 * (0.003**2 + 0.004**2) + (2 * 0.01) ** 2) + 0.002
     assert lod_threshold(q, r, 0.002) == pytest.approx(expected)
     spec = ThresholdSpec(kind="lod")
     assert distance_stats([0.1], spec, q, r, 0.002).threshold == pytest.approx(expected)

@@ -25,13 +25,15 @@ class ThresholdSpec:
     - ``lod``: level of detection from roughness, spacing and registration,
       ``sqrt(z²(σ_q² + σ_r²) + (spacing_factor·s_r)²) + registration`` (see thresholds.py);
       ``registration`` None means "from the captures' alignment residuals".
+      ``spacing_factor`` 2: for a Poisson-sampled surface, the 95 % quantile of the gap
+      to the nearest sample is sqrt(ln 20 / ln 2) ≈ 2.08 × the median NN spacing.
     """
 
     kind: ThresholdKind = "mean_std"
     k: float = 1.0
     distance: float = 0.02
     z: float = 1.96
-    spacing_factor: float = 1.0
+    spacing_factor: float = 2.0
     registration: float | None = None
     neighbours: int = 16
 

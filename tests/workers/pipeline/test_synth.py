@@ -15,6 +15,7 @@ import pytest
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import invert_rigid, transform_points
 from workers.pipeline.synth import (
+    CAPTURES,
     PRESETS,
     SCENARIOS,
     CameraOptions,
@@ -28,7 +29,7 @@ from workers.pipeline.synth import (
     true_surfaces,
     visible_boxes,
 )
-from workers.pipeline.synth.cameras import intrinsics_matrix
+from workers.pipeline.synth.cameras import camera_path, intrinsics_matrix
 from workers.pipeline.synth.cli import cli
 from workers.pipeline.synth.markers import marker_corners_m
 
@@ -51,12 +52,12 @@ def moved(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Scenario]:
 
 def test_same_seed_gives_identical_files(tmp_path: Path, moved: tuple[Path, Scenario]) -> None:
     generate(tmp_path / "again", "moved", seed=3, options=TINY)
-    generate(tmp_path / "other", "moved", seed=4, options=TINY)
     first, again = _digest(moved[0]), _digest(tmp_path / "again")
     assert first == again
     assert len([k for k in first if k.endswith(".png")]) == 2 * TINY.path.n_views
-    other = _digest(tmp_path / "other")
-    assert first["before/images/view_000.png"] != other["before/images/view_000.png"]
+    other = build_scenario("moved", builtin_models(), 4, TINY)
+    _, view = next(iter(render_capture(other, "before", TINY)))
+    assert not np.array_equal(view.image, cv2.imread(str(moved[0] / "before/images/view_000.png")))
 
 
 def test_labels_are_the_extent_of_visible_pixels(moved: tuple[Path, Scenario]) -> None:
@@ -99,9 +100,12 @@ def test_ground_truth_round_trips_through_the_files(moved: tuple[Path, Scenario]
             np.testing.assert_allclose(item["env_from_object"], p.env_from_object, atol=1e-12)
         cameras = json.loads((out / capture / "cameras.json").read_text())
         assert cameras["intrinsics"]["model"] == "PINHOLE"
-        assert len(cameras["poses"]) == TINY.path.n_views
-        for name, view in render_capture(scenario, capture, TINY):
-            np.testing.assert_allclose(cameras["poses"][name], view.env_from_cam, atol=1e-12)
+        assert cameras["intrinsics"]["params"][:2] == [TINY.camera.focal_px] * 2
+        path = camera_path(TINY.path, np.random.default_rng([3, 2, CAPTURES.index(capture)]))
+        assert len(cameras["poses"]) == len(path) == TINY.path.n_views
+        for name, env_from_cam in zip(sorted(cameras["poses"]), path, strict=True):
+            np.testing.assert_allclose(cameras["poses"][name], env_from_cam, atol=1e-12)
+            assert (out / capture / "images" / name).is_file()
     reference = json.loads((out / "reference.json").read_text())
     assert reference == gt["reference"] == scenario.markers.reference()
     assert reference["markers"]["dictionary"] == "DICT_4X4_50"
@@ -135,26 +139,39 @@ def test_depth_lies_on_the_true_surfaces(moved: tuple[Path, Scenario]) -> None:
 
 
 def test_markers_are_detected_where_they_project() -> None:
-    """At 800×600, cv2.aruco finds ≥ 2 markers per view, corners within 1 px of projection."""
-    options = replace(TINY, camera=CameraOptions(), path=replace(TINY.path, n_views=3))
+    """At 800×600 cv2.aruco (sub-pixel corners) finds the printed markers in every view, and
+    their corners land where the known marker poses project.
+
+    Tolerance: no bias (mean error vector < 0.1 px, which a half-pixel convention slip would
+    break), mean < 0.5 px, 90 % < 1 px; the worst corners, on markers seen at grazing angles
+    with 3–4 px per bit, reach about 1.5 px, hence 2 px for the maximum.
+    """
+    options = replace(TINY, camera=CameraOptions(), path=replace(TINY.path, n_views=4))
     scenario = build_scenario("no_change", builtin_models(), 0, options)
     k = intrinsics_matrix(options.camera)
-    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
-    errors = []
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    detector = cv2.aruco.ArucoDetector(dictionary, params)
+    offsets, counts = [], []
+    size = scenario.markers.size_m
     for _, view in render_capture(scenario, "before", options):
         corners, ids, _ = detector.detectMarkers(cv2.cvtColor(view.image, cv2.COLOR_RGB2GRAY))
-        assert ids is not None and len(ids) >= 2
+        assert ids is not None
+        counts.append(len(ids))
         cam_from_env = invert_rigid(view.env_from_cam)
         for marker_id, found in zip(ids.ravel(), corners, strict=True):
             env_from_marker = scenario.markers.env_from_marker[int(marker_id)]
-            corners_env = transform_points(env_from_marker, marker_corners_m(0.15))
-            corners_cam = transform_points(cam_from_env, corners_env)
-            projected = corners_cam @ k.T
-            projected = projected[:, :2] / projected[:, 2:]
-            errors.append(np.linalg.norm(found.reshape(4, 2) - projected, axis=1))
-    errors_px = np.concatenate(errors)
-    assert float(np.max(errors_px)) < 1.0
-    assert float(np.mean(errors_px)) < 0.5
+            corners_env = transform_points(env_from_marker, marker_corners_m(size))
+            projected = transform_points(cam_from_env, corners_env) @ k.T
+            offsets.append(found.reshape(4, 2) - projected[:, :2] / projected[:, 2:])
+    assert min(counts) >= 1 and np.mean(counts) >= 2.5
+    offset_px = np.concatenate(offsets)
+    error_px = np.linalg.norm(offset_px, axis=1)
+    assert float(np.linalg.norm(offset_px.mean(axis=0))) < 0.1
+    assert float(np.mean(error_px)) < 0.5
+    assert float(np.quantile(error_px, 0.9)) < 1.0
+    assert float(np.max(error_px)) < 2.0
 
 
 def _rests_without_overlap(scenario: Scenario, capture: str) -> None:

@@ -67,6 +67,6 @@ def camera_path(path: PathOptions, rng: np.random.Generator) -> list[Mat4]:
         height = mid + amp * np.sin(path.height_waves * theta + wave_phase)
         height += 0.1 * amp * rng.uniform(-1.0, 1.0)
         eye = np.asarray([radius * np.cos(theta), radius * np.sin(theta), height])
-        target = np.asarray([0.0, 0.0, 0.12]) + rng.uniform(-1.0, 1.0, 3) * path.target_jitter_m
+        target = np.asarray([0.0, 0.0, 0.05]) + rng.uniform(-1.0, 1.0, 3) * path.target_jitter_m
         out.append(look_at(eye, target))
     return out

@@ -42,10 +42,14 @@ def cli(argv: list[str]) -> int:
 
         options = replace(options, path=replace(options.path, n_views=args.views))
     try:
-        scene = generate(args.out, args.scenario, args.seed, options, _models(args.ycb, args.objects))
+        scene = generate(
+            args.out, args.scenario, args.seed, options, _models(args.ycb, args.objects)
+        )
     except PipelineError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    print(f"{scene.name}: {len(scene.before)} → {len(scene.after)} objects, "
-          f"{len(scene.changes)} change(s), written to {args.out}")
+    print(
+        f"{scene.name}: {len(scene.before)} → {len(scene.after)} objects, "
+        f"{len(scene.changes)} change(s), written to {args.out}"
+    )
     return 0

@@ -24,7 +24,7 @@ from workers.pipeline.errors import InputError, ShapeError
 from workers.pipeline.geometry import as_mat4
 from workers.pipeline.synth.cameras import camera_path, cameras_json_intrinsics, intrinsics_matrix
 from workers.pipeline.synth.options import PRESETS, DetectionOptions, RoomOptions, SynthOptions
-from workers.pipeline.synth.render import Renderer, RenderedView
+from workers.pipeline.synth.render import RenderedView, Renderer
 from workers.pipeline.synth.scene import Scenario, build_scenario, room_surfaces
 from workers.pipeline.synth.shapes import Mesh, ObjectModel, builtin_models, write_model_ply
 
@@ -43,7 +43,9 @@ class Detection:
     instance: int
 
 
-def visible_boxes(instance: NDArray[np.int32], min_pixels: int) -> dict[int, tuple[int, int, int, int, int]]:
+def visible_boxes(
+    instance: NDArray[np.int32], min_pixels: int
+) -> dict[int, tuple[int, int, int, int, int]]:
     """Per visible instance index: (x0, y0, x1, y1, n_pixels) with exclusive x1, y1, from an
     (H, W) instance buffer; instances with fewer than ``min_pixels`` pixels are left out."""
     if instance.ndim != 2:
@@ -52,7 +54,13 @@ def visible_boxes(instance: NDArray[np.int32], min_pixels: int) -> dict[int, tup
     for idx in np.unique(instance[instance >= 0]):
         rows, cols = np.nonzero(instance == idx)
         if len(rows) >= min_pixels:
-            out[int(idx)] = (int(cols.min()), int(rows.min()), int(cols.max()) + 1, int(rows.max()) + 1, len(rows))
+            out[int(idx)] = (
+                int(cols.min()),
+                int(rows.min()),
+                int(cols.max()) + 1,
+                int(rows.max()) + 1,
+                len(rows),
+            )
     return out
 
 
@@ -70,19 +78,27 @@ def detect(
     for idx, (x0, y0, x1, y1, n) in visible_boxes(instance, options.min_visible_px).items():
         if options.miss_rate > 0 and rng.uniform() < options.miss_rate:
             continue
-        box = np.asarray([x0, y0, x1, y1], np.float64)
+        edges = np.asarray([x0, y0, x1, y1], np.float64)
         if options.box_jitter_px > 0:
-            box += rng.normal(0.0, options.box_jitter_px, 4)
-            box = np.clip(box, 0, [w, h, w, h])
-            if box[2] - box[0] < 2 or box[3] - box[1] < 2:
+            edges += rng.normal(0.0, options.box_jitter_px, 4)
+            edges = np.clip(edges, 0, [w, h, w, h])
+            if edges[2] - edges[0] < 2 or edges[3] - edges[1] < 2:
                 continue
-        confidence = float(np.clip(0.55 + 0.4 * min(1.0, n / 4000.0) + rng.normal(0, 0.03), 0.05, 0.99))
-        out.append(Detection(class_ids[idx], (box[0], box[1], box[2], box[3]), confidence, idx))
+        box = (float(edges[0]), float(edges[1]), float(edges[2]), float(edges[3]))
+        confidence = float(
+            np.clip(0.55 + 0.4 * min(1.0, n / 4000.0) + rng.normal(0, 0.03), 0.05, 0.99)
+        )
+        out.append(Detection(class_ids[idx], box, confidence, idx))
     if options.false_positive_rate > 0 and rng.uniform() < options.false_positive_rate:
         size = rng.uniform(0.05, 0.25, 2) * [w, h]
         corner = rng.uniform(0, 1, 2) * ([w, h] - size)
-        box = (corner[0], corner[1], corner[0] + size[0], corner[1] + size[1])
-        out.append(Detection(int(rng.integers(n_classes)), box, float(rng.uniform(0.3, 0.6)), -1))
+        fp = (
+            float(corner[0]),
+            float(corner[1]),
+            float(corner[0] + size[0]),
+            float(corner[1] + size[1]),
+        )
+        out.append(Detection(int(rng.integers(n_classes)), fp, float(rng.uniform(0.3, 0.6)), -1))
     return out
 
 
@@ -115,7 +131,9 @@ def render_capture(
     placements = scenario.capture(capture)
     c = CAPTURES.index(capture)
     k = intrinsics_matrix(options.camera)
-    renderer = Renderer(scenario.room, placements, scenario.markers, options.camera, options.look, k)
+    renderer = Renderer(
+        scenario.room, placements, scenario.markers, options.camera, options.look, k
+    )
     path = camera_path(options.path, np.random.default_rng([scenario.seed, 2, c]))
     for index, env_from_cam in enumerate(path):
         rng = np.random.default_rng([scenario.seed, 3, c, index])
@@ -134,7 +152,11 @@ def _encode(image_rgb: NDArray[np.uint8], quality: int | None) -> bytes:
 
 
 def write_capture(
-    scenario: Scenario, capture: str, options: SynthOptions, out_dir: Path, progress: Progress | None = None
+    scenario: Scenario,
+    capture: str,
+    options: SynthOptions,
+    out_dir: Path,
+    progress: Progress | None = None,
 ) -> None:
     """Write ``out_dir/<capture>/``: images, labels, classes.txt and cameras.json."""
     root = out_dir / capture
@@ -149,7 +171,9 @@ def write_capture(
         (root / "images" / name).write_bytes(_encode(view.image, options.look.jpeg_quality))
         rng = np.random.default_rng([scenario.seed, 4, c, index])
         dets = detect(view.instance, class_ids, len(classes), options.detection, rng)
-        text = yolo_lines(dets, options.camera.width, options.camera.height, options.detection.confidence)
+        text = yolo_lines(
+            dets, options.camera.width, options.camera.height, options.detection.confidence
+        )
         (root / "labels" / (Path(name).stem + ".txt")).write_text(text)
         poses[name] = view.env_from_cam.tolist()
         if progress is not None:
@@ -186,7 +210,8 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
         "seed": scenario.seed,
         "classes": classes,
         "objects": {
-            m.name: {"model": f"objects/{m.name}.ply", "symmetry": m.symmetry} for m in scenario.models
+            m.name: {"model": f"objects/{m.name}.ply", "symmetry": m.symmetry}
+            for m in scenario.models
         },
         "room": asdict(options.room),
         "reference": scenario.markers.reference(),
@@ -243,10 +268,15 @@ def load_true_surfaces(scenario_dir: Path, capture: str) -> dict[str, o3d.geomet
     if capture not in CAPTURES:
         raise InputError(f"capture must be 'before' or 'after', got {capture!r}")
     gt = json.loads(path.read_text())
-    room = RoomOptions(**{k: tuple(v) if isinstance(v, list) else v for k, v in gt["room"].items()})
+    fields: dict[str, Any] = {
+        k: tuple(v) if isinstance(v, list) else v for k, v in gt["room"].items()
+    }
+    room = RoomOptions(**fields)
     out = {s.name: _legacy(s.mesh, np.eye(4)) for s in room_surfaces(room)}
     for item in gt[capture]:
-        model = o3d.io.read_triangle_mesh(str(scenario_dir / gt["objects"][item["object"]]["model"]))
+        model = o3d.io.read_triangle_mesh(scenario_dir / gt["objects"][item["object"]]["model"])
         mesh = Mesh(np.asarray(model.vertices), np.asarray(model.triangles, np.int32))
-        out[item["instance_id"]] = _legacy(mesh, as_mat4(item["env_from_object"], "env_from_object"))
+        out[item["instance_id"]] = _legacy(
+            mesh, as_mat4(item["env_from_object"], "env_from_object")
+        )
     return out

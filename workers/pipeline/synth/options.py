@@ -51,12 +51,12 @@ class RoomOptions:
     wall_height_m: float = 2.6
     marker_ids: tuple[int, ...] = (0, 1, 2, 3, 4, 5, 6, 7)
     marker_size_m: float = 0.15
-    marker_ring_m: float = 0.95
-    marker_margin_m: float = 0.03
+    marker_ring_m: float = 0.85
+    marker_margin_m: float = 0.025
     table: bool = False
-    table_size_m: tuple[float, float, float] = (0.6, 0.45, 0.42)
-    table_centre_m: tuple[float, float] = (0.0, -0.45)
-    placement_radius_m: float = 0.65
+    table_size_m: tuple[float, float, float] = (0.8, 0.45, 0.42)
+    table_centre_m: tuple[float, float] = (0.0, -1.2)
+    placement_radius_m: float = 0.75
 
 
 @dataclass(frozen=True)

@@ -44,7 +44,9 @@ class _Geometry:
     object_from_env: Mat4
 
 
-def _pixel_rays(k: NDArray[np.float64], width: int, height: int, offset: tuple[float, float]) -> F32:
+def _pixel_rays(
+    k: NDArray[np.float64], width: int, height: int, offset: tuple[float, float]
+) -> F32:
     """(H, W, 3) camera-frame ray directions (z = 1) through pixel centres + ``offset``."""
     u = np.arange(width, dtype=np.float64) + offset[0]
     v = np.arange(height, dtype=np.float64) + offset[1]
@@ -83,17 +85,24 @@ class Renderer:
         self._focal = np.float32(k[0, 0])
 
     def _add(
-        self, mesh: Mesh, env_from_mesh: Mat4, static: StaticSurface | None, placement: Placement | None
+        self,
+        mesh: Mesh,
+        env_from_mesh: Mat4,
+        static: StaticSurface | None,
+        placement: Placement | None,
     ) -> None:
         verts = mesh.vertices @ env_from_mesh[:3, :3].T + env_from_mesh[:3, 3]
         gid = self.scene.add_triangles(
-            o3d.core.Tensor(verts.astype(np.float32)), o3d.core.Tensor(mesh.triangles.astype(np.uint32))
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(verts, np.float32)),
+            o3d.core.Tensor.from_numpy(np.ascontiguousarray(mesh.triangles, np.uint32)),
         )
         if gid != len(self.geometries):
             raise ShapeError(f"unexpected geometry id {gid}")
         normals = (mesh.vertex_normals @ env_from_mesh[:3, :3].T).astype(np.float32)
         self.geometries.append(
-            _Geometry(Mesh(verts, mesh.triangles), normals, static, placement, invert_rigid(env_from_mesh))
+            _Geometry(
+                Mesh(verts, mesh.triangles), normals, static, placement, invert_rigid(env_from_mesh)
+            )
         )
 
     def render(self, env_from_cam: Mat4, rng: np.random.Generator) -> RenderedView:
@@ -104,7 +113,7 @@ class Renderer:
         origin = env_from_cam[:3, 3].astype(np.float32)
         dirs = (self._rays_cam.reshape(-1, 3) @ rot.T).astype(np.float32)
         rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=1)
-        hit = self.scene.cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))
+        hit = self.scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
         t_hit = hit["t_hit"].numpy()
         gids = hit["geometry_ids"].numpy().astype(np.int64)
         prims = hit["primitive_ids"].numpy().astype(np.int64)
@@ -117,9 +126,12 @@ class Renderer:
         normal = np.zeros((len(dirs), 3), np.float32)
         instance = np.full(len(dirs), -1, np.int32)
         n_static = len(self.geometries) - len(self.placements)
-        for gid in np.unique(gids[valid]):
-            geom = self.geometries[int(gid)]
-            sel = np.flatnonzero(valid & (gids == gid))
+        hit_ids = np.flatnonzero(valid)
+        order = hit_ids[np.argsort(gids[hit_ids], kind="stable")]
+        bounds = np.flatnonzero(np.diff(gids[order])) + 1
+        for sel in np.split(order, bounds):
+            gid = int(gids[sel[0]])
+            geom = self.geometries[gid]
             tri = geom.mesh_env.triangles[prims[sel]]
             b1, b2 = bary[sel, 0:1], bary[sel, 1:2]
             nrm = geom.normals_env
@@ -133,7 +145,7 @@ class Renderer:
                 local += geom.object_from_env[:3, 3].astype(np.float32)
                 model = geom.placement.model
                 albedo[sel] = model.surface_colours(prims[sel], bary[sel], local, footprint)
-                instance[sel] = int(gid) - n_static
+                instance[sel] = gid - n_static
             elif geom.static is not None:
                 albedo[sel] = geom.static.texture.colours(points[sel], footprint)
                 if geom.static.name == "floor":
@@ -145,14 +157,30 @@ class Renderer:
     def _print_markers(
         self, sel: NDArray[np.int64], points: F32, albedo: F32, env_from_cam: Mat4
     ) -> None:
-        """Overwrite floor pixels on marker paper with the print, supersampled n×n on z = 0."""
+        """Overwrite floor pixels on marker paper with the print; pixels at a print edge are
+        supersampled n×n by intersecting sub-pixel rays with the floor plane z = 0."""
         grey, on_paper = self.markers.albedo(points[sel])
         if not on_paper.any():
             return
         pix = sel[on_paper]
+        h, w = self.camera.height, self.camera.width
+        value = np.full(h * w, -1.0, np.float32)
+        value[pix] = grey[on_paper]
+        img = value.reshape(h, w)
+        edge = np.zeros((h, w), bool)
+        for axis in (0, 1):
+            step = np.diff(img, axis=axis) != 0
+            if axis == 0:
+                edge[1:] |= step
+                edge[:-1] |= step
+            else:
+                edge[:, 1:] |= step
+                edge[:, :-1] |= step
+        flat_edge = edge.reshape(-1)[pix]
+        albedo[pix[~flat_edge]] = grey[on_paper][~flat_edge, None]
+        pix = pix[flat_edge]
         n = max(1, self.look.marker_supersample)
-        rot = env_from_cam[:3, :3]
-        origin = env_from_cam[:3, 3]
+        rot, origin = env_from_cam[:3, :3], env_from_cam[:3, 3]
         acc = np.zeros((len(pix), 3), np.float32)
         for i in range(n):
             for j in range(n):
@@ -166,7 +194,12 @@ class Renderer:
         albedo[pix] = acc / np.float32(n * n)
 
     def _shade(
-        self, albedo: F32, normal: F32, dirs: F32, valid: NDArray[np.bool_], rng: np.random.Generator
+        self,
+        albedo: F32,
+        normal: F32,
+        dirs: F32,
+        valid: NDArray[np.bool_],
+        rng: np.random.Generator,
     ) -> NDArray[np.uint8]:
         """Lambert + ambient with normals turned towards the camera, then noise and 8 bits."""
         norm = np.linalg.norm(normal, axis=1, keepdims=True)

@@ -7,7 +7,7 @@ Objects rest on a support (floor or table top) by their lowest vertex and only t
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -74,7 +74,9 @@ def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
             (room.size_m, t, 0.0, -half - t / 2),
         ]
     ):
-        out.append(StaticSurface(f"wall_{k}", box((sx, sy, height), (cx, cy, height / 2)), wall_tex))
+        out.append(
+            StaticSurface(f"wall_{k}", box((sx, sy, height), (cx, cy, height / 2)), wall_tex)
+        )
     if room.table:
         (w, d, h), (x, y) = room.table_size_m, room.table_centre_m
         top = 0.03
@@ -101,14 +103,15 @@ class _Placer:
 
     def __init__(self, room: RoomOptions, markers: MarkerSheet, rng: np.random.Generator):
         self.room, self.markers, self.rng = room, markers, rng
-        self.margin = 0.04
+        self.margin = 0.03
 
-    def _free(self, model: ObjectModel, xy: np.ndarray, support: str, others: Sequence[Placement]) -> bool:
+    def _free(
+        self, model: ObjectModel, xy: np.ndarray, support: str, others: Sequence[Placement]
+    ) -> bool:
         r = model.footprint_radius_m()
         for other in others:
             if other.support != support:
-                if support == "floor" or other.support == "floor":
-                    continue
+                continue
             d = float(np.linalg.norm(other.env_from_object[:2, 3] - xy))
             if d < r + other.model.footprint_radius_m() + self.margin:
                 return False
@@ -116,7 +119,7 @@ class _Placer:
         gap = np.abs(xy - centre) - np.asarray([w / 2, dpt / 2])
         if support == "table":
             return bool(np.all(gap <= -r))
-        if float(np.linalg.norm(xy)) + r > self.room.placement_radius_m + 0.2:
+        if float(np.linalg.norm(xy)) > self.room.placement_radius_m:
             return False
         if self.room.table and float(np.linalg.norm(np.maximum(gap, 0.0))) < r + self.margin:
             return False
@@ -138,10 +141,10 @@ class _Placer:
         """A free pose for ``model``; near ``near_xy`` (swaps) or ≥ ``min_move_m`` away from
         ``away_from`` (moves). Raises InputError when no free pose is found."""
         supports = ["floor", "table"] if self.room.table else ["floor"]
-        for attempt in range(2000):
+        for attempt in range(400):
             support = supports[int(self.rng.integers(len(supports)))]
             if near_xy is not None:
-                spread = 0.02 + 0.3 * attempt / 2000
+                spread = 0.02 + 0.3 * attempt / 400
                 xy = near_xy + self.rng.normal(0.0, spread, 2)
                 support = "floor" if away_from is None else away_from.support
             elif support == "table":
@@ -151,15 +154,16 @@ class _Placer:
                 radius = self.room.placement_radius_m * np.sqrt(self.rng.uniform())
                 angle = self.rng.uniform(0.0, 2.0 * np.pi)
                 xy = radius * np.asarray([np.cos(angle), np.sin(angle)])
-            if away_from is not None and near_xy is None:
-                if float(np.linalg.norm(away_from.env_from_object[:2, 3] - xy)) < min_move_m:
+            if near_xy is None and away_from is not None:
+                shift = float(np.linalg.norm(away_from.env_from_object[:2, 3] - xy))
+                if shift < min_move_m:
                     continue
             if not self._free(model, xy, support, others):
                 continue
             support_z = self.room.table_size_m[2] if support == "table" else 0.0
             yaw = self.rng.uniform(-np.pi, np.pi)
             return Placement(instance_id, model, _rest_pose(model, xy, yaw, support_z), support)
-        raise InputError(f"no free place for {model.name}; use fewer or smaller objects")
+        raise _NoRoom(f"no free place for {model.name}")
 
 
 def _change(kind: str, new: Placement | None, old: Placement | None) -> dict[str, Any]:
@@ -177,42 +181,81 @@ def _change(kind: str, new: Placement | None, old: Placement | None) -> dict[str
     }
 
 
+class _NoRoom(InputError):
+    """No free resting pose was found (the layout is retried with other draws)."""
+
+
 def build_scenario(
     scenario: str, models: Sequence[ObjectModel], seed: int, options: SynthOptions
 ) -> Scenario:
     """Lay out the before capture and derive the after capture for ``scenario``.
 
     The last non-symmetric model is held back as the spare (it appears in ``added``,
-    ``swapped`` and ``multiple``); every other model stands in the before capture.
+    ``swapped`` and ``multiple``); every other model stands in the before capture. A layout
+    that paints itself into a corner is redrawn (deterministically from ``seed``).
     """
     if scenario not in SCENARIOS:
         raise InputError(f"unknown scenario {scenario!r}; choose one of {list(SCENARIOS)}")
     names = [m.name for m in models]
     if len(models) < 2 or len(set(names)) != len(names):
         raise InputError(f"need at least two objects with distinct names, got {names}")
-    rng = np.random.default_rng([seed, 1])
+    spare_index = max(
+        (i for i, m in enumerate(models) if m.symmetry is None), default=len(models) - 1
+    )
+    staying = [m for i, m in enumerate(models) if i != spare_index]
+    if scenario == "symmetric_moved" and all(m.symmetry is None for m in staying):
+        raise InputError(f"scenario 'symmetric_moved' needs a symmetric object among {names}")
+    if scenario in ("moved", "multiple") and all(m.symmetry is not None for m in staying):
+        raise InputError(f"scenario {scenario!r} needs two non-symmetric objects among {names}")
     markers = marker_sheet(options.room)
-    placer = _Placer(options.room, markers, rng)
-    spare_index = max((i for i, m in enumerate(models) if m.symmetry is None), default=len(models) - 1)
-    spare = models[spare_index]
+    for attempt in range(50):
+        placer = _Placer(options.room, markers, np.random.default_rng([seed, 1, attempt]))
+        try:
+            before, after, changes = _layout(
+                scenario, staying, models[spare_index], placer, options
+            )
+        except _NoRoom:
+            continue
+        return Scenario(
+            scenario,
+            seed,
+            tuple(models),
+            room_surfaces(options.room),
+            markers,
+            tuple(before),
+            tuple(after),
+            tuple(changes),
+        )
+    raise InputError(f"no room for {names} in this room; use fewer or smaller objects")
+
+
+def _layout(
+    scenario: str,
+    staying: list[ObjectModel],
+    spare: ObjectModel,
+    placer: _Placer,
+    options: SynthOptions,
+) -> tuple[list[Placement], list[Placement], list[dict[str, Any]]]:
+    """Placements before and after, and the change records; raises _NoRoom when stuck."""
+    rng = placer.rng
     before: list[Placement] = []
-    for k, model in enumerate(m for i, m in enumerate(models) if i != spare_index):
+    for k, model in enumerate(staying):
         before.append(placer.place(model, f"inst-{k:02d}", before))
     next_id = f"inst-{len(before):02d}"
     after = list(before)
     changes: list[dict[str, Any]] = []
 
     def pick(symmetric: bool | None) -> Placement:
-        pool = [p for p in after if symmetric is None or (p.model.symmetry is not None) == symmetric]
-        if not pool:
-            kind = "symmetric" if symmetric else "non-symmetric"
-            raise InputError(f"scenario {scenario!r} needs a {kind} object among {names}")
+        pool = [
+            p for p in after if symmetric is None or (p.model.symmetry is not None) == symmetric
+        ]
         return pool[int(rng.integers(len(pool)))]
 
     def move(old: Placement) -> None:
         others = [p for p in after if p is not old]
-        new = placer.place(old.model, old.instance_id, others, away_from=old, min_move_m=options.move_min_m)
-        new = replace(new, instance_id=old.instance_id)
+        new = placer.place(
+            old.model, old.instance_id, others, away_from=old, min_move_m=options.move_min_m
+        )
         after[after.index(old)] = new
         changes.append(_change("moved", new, old))
 
@@ -220,37 +263,26 @@ def build_scenario(
         after.remove(old)
         changes.append(_change("removed", None, old))
 
-    def add() -> None:
+    if scenario == "added":
         new = placer.place(spare, next_id, after)
         after.append(new)
         changes.append(_change("added", new, None))
-
-    if scenario == "added":
-        add()
     elif scenario == "removed":
         remove(pick(None))
-    elif scenario == "moved":
-        move(pick(False))
-    elif scenario == "symmetric_moved":
-        move(pick(True))
+    elif scenario in ("moved", "symmetric_moved"):
+        move(pick(scenario == "symmetric_moved"))
     elif scenario == "swapped":
         old = pick(None)
         others = [p for p in after if p is not old]
-        new = placer.place(spare, next_id, others, near_xy=old.env_from_object[:2, 3], away_from=old)
+        new = placer.place(
+            spare, next_id, others, near_xy=old.env_from_object[:2, 3], away_from=old
+        )
         after[after.index(old)] = new
         changes.append(_change("swapped", new, old))
     elif scenario == "multiple":
-        removed = pick(False)
-        remove(removed)
+        remove(pick(False))
         move(pick(None))
-        add()
-    return Scenario(
-        scenario,
-        seed,
-        tuple(models),
-        room_surfaces(options.room),
-        markers,
-        tuple(before),
-        tuple(after),
-        tuple(changes),
-    )
+        new = placer.place(spare, next_id, after)
+        after.append(new)
+        changes.append(_change("added", new, None))
+    return before, after, changes

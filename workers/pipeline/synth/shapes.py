@@ -92,8 +92,7 @@ def _ear_clip(poly: F64) -> list[list[int]]:
                 continue
             others = [poly[q] for q in idx if q not in (i, j, m)]
             if any(
-                cross(a, b, p) >= 0 and cross(b, c, p) >= 0 and cross(c, a, p) >= 0
-                for p in others
+                cross(a, b, p) >= 0 and cross(b, c, p) >= 0 and cross(c, a, p) >= 0 for p in others
             ):
                 continue
             out.append([i, j, m])
@@ -132,7 +131,10 @@ def cylinder(radius_m: float, z0: float, z1: float, segments: int, bottom: bool)
     k = np.arange(segments)
     k1 = (k + 1) % segments
     side_v = np.concatenate(
-        [np.column_stack([ring, np.full(segments, z0)]), np.column_stack([ring, np.full(segments, z1)])]
+        [
+            np.column_stack([ring, np.full(segments, z0)]),
+            np.column_stack([ring, np.full(segments, z1)]),
+        ]
     )
     side_t = np.concatenate(
         [np.stack([k, k1, k1 + segments], 1), np.stack([k, k1 + segments, k + segments], 1)]
@@ -235,23 +237,34 @@ def builtin_models() -> list[ObjectModel]:
     """The five procedural classes, in a fixed order; ``drum`` is the symmetric one."""
     crate = merge(
         [
-            box((0.36, 0.26, 0.20), (0.0, 0.0, 0.10)),
-            box((0.03, 0.03, 0.03), (0.195, -0.07, 0.14)),
-            box((0.03, 0.03, 0.03), (0.195, 0.07, 0.14)),
-            box((0.03, 0.17, 0.03), (0.225, 0.0, 0.14)),
+            box((0.32, 0.24, 0.20), (0.0, 0.0, 0.10)),
+            box((0.03, 0.03, 0.03), (0.175, -0.07, 0.14)),
+            box((0.03, 0.03, 0.03), (0.175, 0.07, 0.14)),
+            box((0.03, 0.17, 0.03), (0.205, 0.0, 0.14)),
         ]
     )
     drum = merge(
         [cylinder(0.12, 0.0, 0.34, 48, bottom=True), cylinder(0.09, 0.34, 0.355, 40, bottom=False)]
     )
-    l_profile = [(-0.16, 0.0), (0.16, 0.0), (0.16, 0.035), (-0.125, 0.035), (-0.125, 0.26), (-0.16, 0.26)]
+    l_profile = [
+        (-0.16, 0.0),
+        (0.16, 0.0),
+        (0.16, 0.035),
+        (-0.125, 0.035),
+        (-0.125, 0.26),
+        (-0.16, 0.26),
+    ]
     steps = [(-0.15, 0.0), (0.15, 0.0), (0.15, 0.08), (0.05, 0.08), (0.05, 0.16), (-0.05, 0.16)]
     steps += [(-0.05, 0.24), (-0.15, 0.24)]
     wedge = [(-0.18, 0.0), (0.18, 0.0), (0.18, 0.04), (-0.1, 0.2), (-0.18, 0.2)]
     return [
-        ObjectModel("l_bracket", extrude(l_profile, 0.14), _solid((0.45, 0.5, 0.58), (0.75, 0.42, 0.2), 101)),
+        ObjectModel(
+            "l_bracket", extrude(l_profile, 0.14), _solid((0.45, 0.5, 0.58), (0.75, 0.42, 0.2), 101)
+        ),
         ObjectModel("crate", crate, _solid((0.78, 0.18, 0.12), (0.45, 0.08, 0.06), 102)),
-        ObjectModel("stepped_block", extrude(steps, 0.16), _solid((0.85, 0.7, 0.4), (0.5, 0.32, 0.16), 103)),
+        ObjectModel(
+            "stepped_block", extrude(steps, 0.16), _solid((0.85, 0.7, 0.4), (0.5, 0.32, 0.16), 103)
+        ),
         ObjectModel("wedge", extrude(wedge, 0.2), _solid((0.2, 0.62, 0.35), (0.1, 0.4, 0.5), 104)),
         ObjectModel(
             "drum",
@@ -270,12 +283,10 @@ def load_model(path: Path, name: str | None = None) -> ObjectModel:
     """Load a mesh file (OBJ with UV texture, or PLY etc. with vertex colours) in metres."""
     if not path.is_file():
         raise InputError(f"object model not found: {path}")
-    legacy = o3d.io.read_triangle_mesh(str(path), True)
+    legacy = o3d.io.read_triangle_mesh(path, True)
     if len(legacy.triangles) == 0:
         raise InputError(f"object model has no triangles: {path}")
-    mesh = Mesh(
-        np.asarray(legacy.vertices, np.float64), np.asarray(legacy.triangles, np.int32)
-    )
+    mesh = Mesh(np.asarray(legacy.vertices, np.float64), np.asarray(legacy.triangles, np.int32))
     label = name or (path.parent.name if path.stem == "textured" else path.stem)
     symmetry: Symmetry | None = None
     if label in _YCB_SYMMETRIC_Z:
@@ -298,7 +309,9 @@ def load_model(path: Path, name: str | None = None) -> ObjectModel:
         colours = np.asarray(legacy.vertex_colors, np.float32)
         return ObjectModel(label, mesh, vertex_colours=colours, symmetry=symmetry)
     seed = sum(label.encode()) % 1000
-    return ObjectModel(label, mesh, _solid((0.7, 0.7, 0.7), (0.4, 0.4, 0.45), seed), symmetry=symmetry)
+    return ObjectModel(
+        label, mesh, _solid((0.7, 0.7, 0.7), (0.4, 0.4, 0.45), seed), symmetry=symmetry
+    )
 
 
 def write_model_ply(model: ObjectModel, path: Path) -> None:
@@ -307,8 +320,10 @@ def write_model_ply(model: ObjectModel, path: Path) -> None:
         o3d.utility.Vector3dVector(model.mesh.vertices),
         o3d.utility.Vector3iVector(model.mesh.triangles),
     )
-    legacy.vertex_colors = o3d.utility.Vector3dVector(model.colours_at_vertices().astype(np.float64))
+    legacy.vertex_colors = o3d.utility.Vector3dVector(
+        model.colours_at_vertices().astype(np.float64)
+    )
     legacy.vertex_normals = o3d.utility.Vector3dVector(model.mesh.vertex_normals)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not o3d.io.write_triangle_mesh(str(path), legacy, write_ascii=False):
+    if not o3d.io.write_triangle_mesh(path, legacy, write_ascii=False):
         raise InputError(f"could not write model file {path}")

@@ -1,0 +1,158 @@
+"""Webhooks through real Celery workers (threads pool, embedded beat running the dispatcher)
+over a private Redis, against a fresh PostgreSQL built by the migrations, to a real HTTP
+receiver on loopback: a slow receiver does not delay another subscription, order is kept
+per subscription, and a worker killed mid-schedule loses nothing (the event arrives exactly
+once more, from a fresh worker that finds the schedule in the database).
+
+One test, so the workers start twice in all (each start imports the whole worker)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core import db, events, queue, webhooks
+from app.core.enums import DeliveryState, EventType
+from app.core.models import Delivery, DeliveryAttempt, Environment, WebhookSubscription
+from app.core.settings import get_settings
+from tests.app.core.test_webhooks import Receiver
+from tests.e2e.conftest import Processes, RedisServer, wait_until
+
+pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
+
+SCHEDULE = "[0.3, 6.0, 0.3]"
+
+
+@pytest.fixture
+def stack(
+    tmp_path: Path,
+    pg_url: str,
+    redis_server: RedisServer,
+    processes: Callable[..., Processes],
+    monkeypatch: pytest.MonkeyPatch,
+) -> Iterator[tuple[Processes, sessionmaker[Session]]]:
+    """Worker settings, and this process set up as the API would be (same database and
+    broker), so events recorded here are sent to the workers after commit."""
+    settings = {
+        "database_url": pg_url,
+        "broker_url": redis_server.url,
+        "webhook_retry_schedule_s": SCHEDULE,
+        "webhook_allowed_networks": '["127.0.0.0/8"]',
+        "webhook_timeout_s": "5",
+    }
+    procs = processes(**settings)
+    for key, value in settings.items():
+        monkeypatch.setenv(f"TWINDELTA_{key.upper()}", value)
+    monkeypatch.setenv("TWINDELTA_DATA_DIR", str(tmp_path / "api-data"))
+    get_settings.cache_clear()
+    queue.get_sender.cache_clear()
+    engine = db.make_engine(pg_url)
+    factory = sessionmaker(bind=engine, expire_on_commit=False)
+    db.use_session_factory(factory)
+    yield procs, factory
+    db.use_session_factory(None)
+    engine.dispose()
+    get_settings.cache_clear()
+    queue.get_sender.cache_clear()
+
+
+def start_worker(procs: Processes, name: str, tmp_path: Path) -> None:
+    procs.worker(
+        name, "webhooks", "-P", "threads", "-c", "4", "-B", "-s", str(tmp_path / f"{name}-beat")
+    )
+
+
+def subscribe(factory: sessionmaker[Session], url: str, types: list[EventType]) -> str:
+    with factory.begin() as s:
+        return webhooks.create_subscription(
+            s, get_settings(), url=url, event_types=types, environment_id=None
+        ).id
+
+
+def make_env(factory: sessionmaker[Session]) -> str:
+    with factory.begin() as s:
+        env = Environment(name="line-1", classes=["power_drill"])
+        s.add(env)
+        s.flush()
+        return env.id
+
+
+def record(factory: sessionmaker[Session], env_id: str, n: int, event_type: EventType) -> str:
+    with factory.begin() as s:
+        return events.record(
+            s, event_type, environment_id=env_id, subject=f"things/{n}", data={"n": n}
+        ).id
+
+
+def of(factory: sessionmaker[Session], sub_id: str) -> list[Delivery]:
+    with factory() as s:
+        query = select(Delivery).where(Delivery.subscription_id == sub_id)
+        return list(s.scalars(query.order_by(Delivery.seq)))
+
+
+def test_slow_receiver_order_and_worker_killed_mid_schedule(
+    tmp_path: Path, stack: tuple[Processes, sessionmaker[Session]]
+) -> None:
+    procs, factory = stack
+    receiver = Receiver().start()
+    try:
+        changes = [EventType.comparison_completed]
+        slow = subscribe(factory, receiver.url("/slow"), changes)
+        fast = subscribe(factory, receiver.url("/fast"), changes)
+        flaky = subscribe(factory, receiver.url("/flaky"), [EventType.job_failed])
+        receiver.plan("/slow", [200, 200, 200], delays=[1.5])
+        receiver.plan("/flaky", [500, 500])
+        env = make_env(factory)
+        start_worker(procs, "wh1", tmp_path)
+        failed_id = record(factory, env, 0, EventType.job_failed)
+        ids = [record(factory, env, n, EventType.comparison_completed) for n in (1, 2, 3)]
+
+        # a slow receiver delays neither the other subscription nor its own order
+        wait_until(lambda: len(receiver.on("/slow")) == 3, 30, "the slow receiver's three")
+        fast_hits, slow_hits = receiver.on("/fast"), receiver.on("/slow")
+        assert [h.headers["webhook-id"] for h in fast_hits] == ids
+        assert [h.headers["webhook-id"] for h in slow_hits] == ids
+        assert fast_hits[-1].at < slow_hits[0].done_at  # all three while the first hung
+        assert slow_hits[1].at >= slow_hits[0].done_at  # the second waited for the first
+
+        # the flaky receiver failed twice; its third attempt is 6 s away, in the database only
+        wait_until(lambda: len(attempts(factory, flaky)) == 2, 30, "two failed attempts")
+        procs.kill("wh1")  # SIGKILL the worker, its threads and its embedded beat
+        assert [h.status for h in receiver.on("/flaky")] == [500, 500]
+        assert [d.state for d in of(factory, flaky)] == [DeliveryState.pending]
+
+        start_worker(procs, "wh2", tmp_path)  # a fresh process picks up from the database
+        wait_until(
+            lambda: [d.state for d in of(factory, flaky)] == [DeliveryState.succeeded],
+            40,
+            "the flaky delivery to succeed",
+        )
+        time.sleep(1.0)  # and nothing more arrives
+        hits = receiver.on("/flaky")
+        assert [h.status for h in hits] == [500, 500, 200]
+        assert {h.headers["webhook-id"] for h in hits} == {failed_id}
+        assert [a.status_code for a in attempts(factory, flaky)] == [500, 500, 200]
+        with factory() as s:
+            secret = s.get(WebhookSubscription, flaky).secret  # type: ignore[union-attr]
+        for h in hits:
+            webhooks.verify_signature(secret, h.headers, h.body)
+        for sub in (slow, fast):
+            assert [d.state for d in of(factory, sub)] == [DeliveryState.succeeded] * 3
+    finally:
+        receiver.stop()
+
+
+def attempts(factory: sessionmaker[Session], sub_id: str) -> list[DeliveryAttempt]:
+    with factory() as s:
+        query = (
+            select(DeliveryAttempt)
+            .join(Delivery, Delivery.id == DeliveryAttempt.delivery_id)
+            .where(Delivery.subscription_id == sub_id)
+            .order_by(DeliveryAttempt.number)
+        )
+        return list(s.scalars(query))

@@ -21,13 +21,16 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 import re
 import shutil
 import stat
+import struct
 import tarfile
 import zipfile
 import zlib
 from collections.abc import Collection, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
@@ -155,8 +158,9 @@ def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int
     """Width and height of a JPEG or PNG after checking that it decodes.
 
     The pixel count comes from the header (``Image.open`` reads nothing else) and is checked
-    before any decoding; JPEGs decode at 1/8 scale (``Image.draft``), PNGs are verified
-    (chunk CRCs) and then decoded. ``ImageTooLarge`` (413) or ``InvalidImage`` (422).
+    before any decoding; JPEGs decode at 1/8 scale (``Image.draft``); PNGs are verified
+    (chunk CRCs) and their pixel stream inflated in pieces and counted, so memory stays
+    small whatever the size. ``ImageTooLarge`` (413) or ``InvalidImage`` (422).
     """
     try:
         with Image.open(source) as img:
@@ -171,16 +175,86 @@ def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int
             else:
                 img.verify()
         if fmt == "PNG":
-            source.seek(0)
-            with Image.open(source) as img:
-                img.load()
+            _check_png_pixels(source, where)
     except Image.DecompressionBombError as exc:
         raise _too_large("ImageTooLarge", f"{where}: {exc}") from exc
     except DomainError:
         raise
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, EOFError) as exc:
+    except (
+        UnidentifiedImageError,
+        OSError,
+        SyntaxError,
+        ValueError,
+        EOFError,
+        struct.error,
+        zlib.error,
+    ) as exc:
         raise _invalid("InvalidImage", f"{where}: not a readable JPEG or PNG ({exc})") from exc
     return width, height
+
+
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+_ADAM7 = (
+    (0, 0, 8, 8),
+    (4, 0, 8, 8),
+    (0, 4, 4, 8),
+    (2, 0, 4, 4),
+    (0, 2, 2, 4),
+    (1, 0, 2, 2),
+    (0, 1, 1, 2),
+)
+
+
+def _png_raw_size(width: int, height: int, bit_depth: int, color_type: int, interlace: int) -> int:
+    """Bytes of the filtered scanlines a PNG header promises (PNG spec, section 7-8)."""
+    bits = _PNG_CHANNELS.get(color_type, 4) * bit_depth
+    passes = _ADAM7 if interlace else ((0, 0, 1, 1),)
+    total = 0
+    for x0, y0, dx, dy in passes:
+        w, h = -(-(width - x0) // dx), -(-(height - y0) // dy)
+        if w > 0 and h > 0:
+            total += h * (1 + (w * bits + 7) // 8)
+    return total
+
+
+def _check_png_pixels(source: BinaryIO, where: str) -> None:
+    """Inflate a PNG's IDAT stream piece by piece and check it holds exactly the scanline
+    bytes its header promises (the chunk CRCs were checked by ``verify``)."""
+    source.seek(8)
+    inflater = zlib.decompressobj()
+    expected, produced = 0, 0
+    while True:
+        head = source.read(8)
+        if len(head) < 8:
+            raise _invalid("InvalidImage", f"{where}: truncated PNG")
+        length, kind = struct.unpack(">I4s", head)
+        if kind == b"IHDR":
+            width, height, depth, color, _, _, interlace = struct.unpack(
+                ">IIBBBBB", source.read(13)
+            )
+            expected = _png_raw_size(width, height, depth, color, interlace)
+            source.seek(length - 13, 1)
+        elif kind == b"IDAT":
+            left = length
+            while left:
+                piece = source.read(min(left, 1024 * 1024))
+                if not piece:
+                    raise _invalid("InvalidImage", f"{where}: truncated PNG")
+                left -= len(piece)
+                while piece:
+                    produced += len(inflater.decompress(piece, 1024 * 1024))
+                    piece = inflater.unconsumed_tail
+                    if produced > expected:
+                        raise _invalid("InvalidImage", f"{where}: more pixel data than its size")
+        elif kind == b"IEND":
+            break
+        else:
+            source.seek(length, 1)
+        source.seek(4, 1)  # the CRC
+    if not inflater.eof or produced != expected:
+        raise _invalid(
+            "InvalidImage", f"{where}: pixel data ends early ({produced} of {expected} bytes)"
+        )
 
 
 def _check_pixels(width: int, height: int, where: str, max_pixels: int) -> None:
@@ -598,9 +672,17 @@ def _validate(staging: _Staging, classes: Sequence[str]) -> _Checked:
     for stem, labels in sorted(staging.labels.items()):
         if stem not in staging.image_stems:
             raise _invalid("OrphanDetections", f"{labels.where}: no image with the stem {stem!r}")
-    for image in staging.images.values():
-        with image.path.open("rb") as fh:
-            probe_image(fh, image.where, settings.max_image_pixels)
+    # Decoders release the GIL: probe a few images at once; the first error in upload order.
+    pool = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1))
+    try:
+        probes = [
+            pool.submit(_probe_path, image, settings.max_image_pixels)
+            for image in staging.images.values()
+        ]
+        for probe in probes:
+            probe.result()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
     n_detections = 0
     for labels in staging.labels.values():
         with labels.path.open("rb") as fh:
@@ -616,6 +698,11 @@ def _validate(staging: _Staging, classes: Sequence[str]) -> _Checked:
             parse_classes(fh, CLASSES_NAME, classes)
         classes_file.unlink()
     return _Checked(n_detections=n_detections)
+
+
+def _probe_path(image: _Staged, max_pixels: int) -> tuple[int, int]:
+    with image.path.open("rb") as fh:
+        return probe_image(fh, image.where, max_pixels)
 
 
 # --- the upload -----------------------------------------------------------------------------

@@ -18,7 +18,7 @@ from app.core.errors import DomainError
 from app.core.models import Snapshot, SnapshotImage
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
-from tests.app.api.test_snapshots_upload import CLASSES, capture, image_bytes
+from tests.app.api.test_snapshots_upload import CLASSES, capture, image_bytes, png_claiming
 
 
 @pytest.fixture
@@ -224,3 +224,7 @@ def test_probe_image_checks_header_before_decoding() -> None:
     with pytest.raises(DomainError) as err:
         ingest.probe_image(io.BytesIO(bytes(corrupt)), "a.png", 10**6)
     assert err.value.code == "InvalidImage" and "a.png" in err.value.detail
+    # Within the pixel limit, but the pixel stream is shorter than the header promises.
+    with pytest.raises(DomainError) as err:
+        ingest.probe_image(io.BytesIO(png_claiming(1000, 1000)), "b.png", 10**7)
+    assert err.value.code == "InvalidImage" and "b.png: pixel data ends early" in err.value.detail

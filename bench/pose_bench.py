@@ -26,7 +26,7 @@ import open3d as o3d
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from workers.pipeline.geometry import Mat4, invert_rigid, pose_error, transform_points  # noqa: E402
-from workers.pipeline.model import MODEL_PRESETS, PreparedModel, load_surface, prepare_model  # noqa: E402
+from workers.pipeline.model import MODEL_PRESETS, ModelOptions, load_surface, prepare_model  # noqa: E402
 from workers.pipeline.pose import (  # noqa: E402
     POSE_PRESETS,
     PoseResult,
@@ -49,9 +49,8 @@ def partial_view_scene(
     table: bool = True,
 ) -> tuple[SceneCloud, np.ndarray]:
     """A synthetic scan of the object in the env frame; returns (scene, object points env)."""
-    pts, nrm, col = load_surface(
-        mesh_path, MODEL_PRESETS["default"].__class__(n_points=40000, sampling="uniform", seed=int(rng.integers(1 << 30)))
-    )
+    sample = ModelOptions(n_points=40000, sampling="uniform", seed=int(rng.integers(1 << 30)))
+    pts, nrm, col = load_surface(mesh_path, sample)
     centre = pts.mean(axis=0)
     diam = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
     keep = np.zeros(len(pts), bool)
@@ -80,11 +79,13 @@ def partial_view_scene(
     return SceneCloud.create(obj_env, n_env, c), transform_points(env_from_object, p)
 
 
-def run_ycb(names: list[str], trials: int, work: Path, seed: int = 0) -> dict[str, object]:
+def run_ycb(
+    names: list[str], trials: int, work: Path, seed: int = 0, options: ModelOptions = MODEL_PRESETS["default"]
+) -> dict[str, object]:
     out: dict[str, object] = {}
     for name in names:
         mesh = DATA / "ycb" / name / "textured.obj"
-        model = prepare_model(mesh, work / name)
+        model = prepare_model(mesh, work / name, options)
         rows = []
         for k in range(trials):
             rng = np.random.default_rng(seed * 100 + k)
@@ -96,10 +97,11 @@ def run_ycb(names: list[str], trials: int, work: Path, seed: int = 0) -> dict[st
             e_t, e_r = symmetric_pose_error(res.env_from_object, true, model.symmetry)
             rows.append(
                 {"t_mm": e_t * 1000, "r_deg": e_r, "s": dt, "fitness": res.fitness,
-                 "rmse_mm": res.inlier_rmse_m * 1000, "verified": res.verified, "source": res.source}
+                 "rmse_mm": res.inlier_rmse_m * 1000, "verified": res.verified, "source": res.source,
+                 "runner_up_ratio": res.runner_up_score / res.score}
             )
             print(f"{name:18s} trial {k}: {e_t*1000:6.2f} mm {e_r:6.2f} deg {dt:5.2f} s "
-                  f"fit {res.fitness:.2f} rmse {res.inlier_rmse_m*1000:.2f} mm ver {res.verified} {res.source}", flush=True)
+                  f"fit {res.fitness:.2f} rmse {res.inlier_rmse_m*1000:.2f} mm ver {res.verified} ru {res.runner_up_score / res.score:.2f} {res.source}", flush=True)
         out[name] = {
             "symmetry": model.symmetry.kind,
             "trials": rows,
@@ -116,10 +118,12 @@ def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--objects", default=",".join(OBJECTS))
     ap.add_argument("--trials", type=int, default=6)
+    ap.add_argument("--voxel-divisor", type=float, default=MODEL_PRESETS["default"].voxel_divisor)
     ap.add_argument("--work", type=Path, default=Path("/tmp/twindelta_pose_bench"))
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results" / "pose.json")
     args = ap.parse_args()
-    res = {"ycb": run_ycb(args.objects.split(","), args.trials, args.work)}
+    opts = ModelOptions(voxel_divisor=args.voxel_divisor)
+    res = {"ycb": run_ycb(args.objects.split(","), args.trials, args.work, options=opts)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=2))
     return 0

@@ -13,7 +13,11 @@ Work-directory layout (version ``FORMAT_VERSION``)::
                           centre_object, up_object, symmetry spec, point counts, timings
       model.ply           (N, 3) sampled surface cloud with normals and colours (metres)
       model_down.ply      (M, 3) the same cloud voxel-downsampled at ``voxel_m``
-      fpfh.npy            (M, 33) float32 FPFH descriptors of ``model_down.ply``
+      features.npy        (K, 6) float64 points and normals that carry the descriptors: the
+                          downsampled cloud, then its part visible from each of
+                          ``feature_views`` viewpoints (a scan sees one side; its FPFH
+                          must not include the hidden side of a thin object)
+      fpfh.npy            (K, 33) float32 FPFH descriptors of ``features.npy``
 
 Re-running with the same source file, units, options and symmetry request returns the
 stored result without recomputing it.
@@ -40,11 +44,12 @@ from workers.pipeline.symmetry import (
     SymmetryOptions,
     SymmetrySpec,
     detect_symmetry,
+    near_symmetries,
     spec_from_json,
     spec_to_json,
 )
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 3
 UNITS_TO_M: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 MESH_SUFFIXES = {".ply", ".obj", ".stl", ".glb", ".gltf", ".off"}
 CLOUD_SUFFIXES = {".pcd", ".ply", ".xyz", ".pts"}
@@ -59,7 +64,9 @@ class ModelOptions:
     5× uniform sample, even spacing) or ``"uniform"`` (area-weighted random). ``voxel_divisor``:
     the feature voxel is ``diameter / voxel_divisor``; FPFH uses a normal radius of
     ``normal_radius_voxels`` and a feature radius of ``feature_radius_voxels`` voxels.
-    ``seed`` makes sampling reproducible.
+    ``feature_views``: besides whole-model FPFH, descriptors of the part visible from this
+    many viewpoints (hidden-point removal) are stored, so that a one-sided scan finds
+    matching descriptors. ``seed`` makes sampling reproducible.
     """
 
     n_points: int = 6000
@@ -67,6 +74,7 @@ class ModelOptions:
     voxel_divisor: float = 25.0
     normal_radius_voxels: float = 2.0
     feature_radius_voxels: float = 5.0
+    feature_views: int = 12
     seed: int = 0
     symmetry: SymmetryOptions = field(default_factory=SymmetryOptions)
 
@@ -84,10 +92,12 @@ class PreparedModel:
 
     ``points``/``normals``: (N, 3) float64 surface samples and unit outward normals;
     ``colors``: (N, 3) float64 in [0, 1] or None; ``down_points``/``down_normals``: (M, 3)
-    at ``voxel_m``; ``fpfh``: (M, 33) float64; ``centre_object``: (3,) centroid of the
+    at ``voxel_m``; ``feature_points``/``feature_normals``: (K, 3) points carrying the
+    ``fpfh`` (K, 33) descriptors (whole-model and per-view); ``centre_object``: (3,) centroid of the
     samples; ``up_object``: (3,) unit "up" of the object (model +z unless the file says
     otherwise) used to choose among symmetric poses; ``symmetry``: see
-    :mod:`workers.pipeline.symmetry`.
+    :mod:`workers.pipeline.symmetry`; ``near_symmetries``: 4×4 rotations that almost map
+    the object onto itself (tried explicitly by pose estimation).
     """
 
     name: str
@@ -97,6 +107,8 @@ class PreparedModel:
     down_points: Points
     down_normals: Points
     down_colors: Points | None
+    feature_points: Points
+    feature_normals: Points
     fpfh: NDArray[np.float64]
     diameter_m: float
     voxel_m: float
@@ -104,6 +116,7 @@ class PreparedModel:
     up_object: NDArray[np.float64]
     symmetry: SymmetrySpec
     summary: dict[str, Any]
+    near_symmetries: tuple[NDArray[np.float64], ...] = ()
 
 
 # --------------------------------------------------------------------------- loading
@@ -215,7 +228,8 @@ def load_surface(
         raise InputError(f"{path.name}: file is missing or empty")
     mesh: o3d.geometry.TriangleMesh | None = None
     if suffix in MESH_SUFFIXES:
-        mesh = o3d.io.read_triangle_mesh(str(path), True)
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            mesh = o3d.io.read_triangle_mesh(str(path), True)
         if len(mesh.triangles) == 0:
             mesh = None
     if mesh is not None:
@@ -300,6 +314,47 @@ def fpfh_features(
     return np.asarray(feat.data, dtype=np.float64).T.copy()
 
 
+def view_features(
+    points: Points,
+    normals: Points,
+    down_points: Points,
+    down_normals: Points,
+    voxel_m: float,
+    options: ModelOptions,
+) -> tuple[Points, Points, NDArray[np.float64]]:
+    """Descriptor-carrying points: (K, 3) points, (K, 3) normals, (K, 33) FPFH.
+
+    The whole downsampled model first, then for each of ``options.feature_views``
+    viewpoints (Fibonacci sphere at three diameters) the visible part of the dense cloud
+    (hidden-point removal), downsampled at ``voxel_m`` with its own FPFH.
+    """
+    nr, fr = options.normal_radius_voxels, options.feature_radius_voxels
+    pts = [down_points]
+    nrm = [down_normals]
+    feats = [fpfh_features(make_cloud(down_points, down_normals, None), voxel_m, nr, fr)]
+    n = options.feature_views
+    if n > 0:
+        centre = points.mean(axis=0)
+        diam = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+        i = np.arange(n) + 0.5
+        z = 1.0 - 2.0 * i / n
+        phi = np.pi * (1 + 5**0.5) * i
+        dirs = np.stack([np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], axis=1)
+        dense = make_cloud(points, normals, None)
+        for d in dirs:
+            _, idx = dense.hidden_point_removal(centre + 3.0 * diam * d, 300.0 * diam)
+            idx = np.asarray(idx, dtype=np.int64)
+            if len(idx) < 20:
+                continue
+            vp, vn, _ = _downsample(points[idx], normals[idx], None, voxel_m)
+            if len(vp) < 10:
+                continue
+            pts.append(vp)
+            nrm.append(vn)
+            feats.append(fpfh_features(make_cloud(vp, vn, None), voxel_m, nr, fr))
+    return np.vstack(pts), np.vstack(nrm), np.vstack(feats)
+
+
 def _downsample(
     points: Points, normals: Points, colors: Points | None, voxel_m: float
 ) -> tuple[Points, Points, Points | None]:
@@ -371,12 +426,11 @@ def prepare_model(
     voxel = diam / options.voxel_divisor
     t1 = time.perf_counter()
     d_pts, d_nrm, d_col = _downsample(points, normals, colors, voxel)
-    fpfh = fpfh_features(
-        make_cloud(d_pts, d_nrm, None), voxel, options.normal_radius_voxels, options.feature_radius_voxels
-    )
+    f_pts, f_nrm, fpfh = view_features(points, normals, d_pts, d_nrm, voxel, options)
     t_feat = time.perf_counter() - t1
     t2 = time.perf_counter()
     spec = symmetry if symmetry is not None else detect_symmetry(points, colors, options.symmetry)
+    near = near_symmetries(points, spec, options.symmetry)
     t_sym = time.perf_counter() - t2
     centre = points.mean(axis=0)
     up = np.array([0.0, 0.0, 1.0])
@@ -394,14 +448,17 @@ def prepare_model(
         "up_object": up.tolist(),
         "n_points": len(points),
         "n_down": len(d_pts),
+        "n_features": len(f_pts),
         "has_colors": colors is not None,
         "symmetry": spec_to_json(spec),
+        "near_symmetries": [np.round(m, 9).tolist() for m in near],
         "symmetry_source": "explicit" if symmetry is not None else "detected",
         "timings_s": {"load_sample": t_load, "features": t_feat, "symmetry": t_sym},
     }
     work_dir.mkdir(parents=True, exist_ok=True)
     o3d.io.write_point_cloud(str(work_dir / "model.ply"), make_cloud(points, normals, colors))
     o3d.io.write_point_cloud(str(work_dir / "model_down.ply"), make_cloud(d_pts, d_nrm, d_col))
+    np.save(work_dir / "features.npy", np.hstack([f_pts, f_nrm]))
     np.save(work_dir / "fpfh.npy", fpfh.astype(np.float32))
     tmp = summary_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(summary, indent=2))
@@ -424,11 +481,13 @@ def load_prepared(work_dir: Path) -> PreparedModel:
     full = o3d.io.read_point_cloud(str(work_dir / "model.ply"))
     down = o3d.io.read_point_cloud(str(work_dir / "model_down.ply"))
     fpfh_path = work_dir / "fpfh.npy"
-    if len(full.points) == 0 or len(down.points) == 0 or not fpfh_path.is_file():
+    feat_path = work_dir / "features.npy"
+    if len(full.points) == 0 or len(down.points) == 0 or not fpfh_path.is_file() or not feat_path.is_file():
         raise InputError(f"{work_dir}: prepared model files are missing or empty")
     fpfh = np.load(fpfh_path).astype(np.float64)
-    if fpfh.shape != (len(down.points), 33):
-        raise InputError(f"{work_dir}: fpfh.npy has shape {fpfh.shape}, expected ({len(down.points)}, 33)")
+    feat = np.load(feat_path).astype(np.float64)
+    if feat.ndim != 2 or feat.shape[1] != 6 or fpfh.shape != (len(feat), 33):
+        raise InputError(f"{work_dir}: features.npy {feat.shape} and fpfh.npy {fpfh.shape} disagree")
     has_col = bool(summary.get("has_colors"))
     return PreparedModel(
         name=str(summary["name"]),
@@ -438,12 +497,17 @@ def load_prepared(work_dir: Path) -> PreparedModel:
         down_points=np.asarray(down.points).copy(),
         down_normals=np.asarray(down.normals).copy(),
         down_colors=np.asarray(down.colors).copy() if has_col else None,
+        feature_points=feat[:, :3].copy(),
+        feature_normals=feat[:, 3:].copy(),
         fpfh=fpfh,
         diameter_m=float(summary["diameter_m"]),
         voxel_m=float(summary["voxel_m"]),
         centre_object=np.asarray(summary["centre_object"], dtype=np.float64),
         up_object=np.asarray(summary["up_object"], dtype=np.float64),
         symmetry=spec_from_json(summary["symmetry"]),
+        near_symmetries=tuple(
+            np.asarray(m, dtype=np.float64) for m in summary.get("near_symmetries", [])
+        ),
         summary=summary,
     )
 

@@ -42,6 +42,7 @@ from workers.pipeline.geometry import (
     Points,
     as_mat4,
     as_points,
+    invert_rigid,
     make_rigid,
     pose_error,
     rotation_angle_deg,
@@ -61,7 +62,11 @@ class PoseOptions:
     Verification: ``verified`` needs ``fitness ≥ min_fitness`` (model points within
     ``inlier_voxels·v`` of the scene; a single view sees 30–60 % of an object),
     ``inlier_rmse ≤ max_rmse_voxels·v`` and, when cluster points are given,
-    ``cluster_coverage ≥ min_cluster_coverage``.
+    ``cluster_coverage ≥ min_cluster_coverage`` (the share of cluster points within
+    ``coverage_voxels·v`` of the posed model: the change must be explained by the object), and no *distinct* candidate (modulo
+    symmetry) scoring above ``max_runner_up_ratio`` × the best: two different poses that
+    explain the data about equally well (a wall sliding along a wall) are not a verified
+    pose.
     """
 
     crop_factor: float = 0.7
@@ -70,15 +75,21 @@ class PoseOptions:
     ransac_confidence: float = 0.999
     ransac_distance_voxels: float = 1.5
     mutual_filter: bool = False
+    ransac_direction: str = "scene_to_model"
     edge_length_check: float = 0.9
-    score_voxels: float = 1.0
+    score_voxels: float = 0.5
+    n_refine: int = 3
+    n_flip_bases: int = 2
+    fine_score_voxels: float = 0.3
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
-    icp_max_iterations: int = 40
+    icp_max_iterations: int = 30
     colored_icp: bool = True
     inlier_voxels: float = 0.5
     min_fitness: float = 0.25
     max_rmse_voxels: float = 0.3
-    min_cluster_coverage: float = 0.5
+    coverage_voxels: float = 0.5
+    min_cluster_coverage: float = 0.85
+    max_runner_up_ratio: float = 0.85
     seed: int = 0
 
 
@@ -155,7 +166,9 @@ class PoseResult:
     (metres) into the environment frame. ``equivalent_poses``: other poses that fit equally
     well by symmetry (continuous symmetry: 8 samples per discrete element; the axis is
     ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
-    "previous" or "up". ``cluster_coverage`` is None when no cluster points were given."""
+    "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
+    ``alternatives``: the other refined hypotheses as (fine score, env_from_object), best
+    first — for a caller whose re-projection check rejects the chosen pose."""
 
     env_from_object: Mat4
     fitness: float
@@ -174,6 +187,7 @@ class PoseResult:
     source: str
     trials: tuple[Trial, ...]
     n_scene_points: int
+    alternatives: tuple[tuple[float, Mat4], ...] = ()
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:
@@ -205,16 +219,29 @@ def random_rigid(rng: np.random.Generator, max_translation_m: float = 1.0) -> Ma
 
 
 def symmetric_pose_error(
-    estimated_env_from_object: ArrayLike, true_env_from_object: ArrayLike, symmetry: SymmetrySpec
+    estimated_env_from_object: ArrayLike,
+    true_env_from_object: ArrayLike,
+    symmetry: SymmetrySpec,
+    point_object: ArrayLike | None = None,
 ) -> tuple[float, float]:
-    """(metres, degrees) pose error minimised over the symmetry group (by rotation, then
-    translation): the error that matters for an object whose equivalent poses look alike.
-    Translation is measured at the object origin."""
+    """(metres, degrees) pose error minimised over the symmetry group: the equivalent pose
+    with the smallest rotation error, and its translation error measured at
+    ``point_object`` ((3,), object frame; default the symmetry origin for continuous
+    symmetry, else the object origin). Continuous symmetry is sampled every 0.1°."""
     est = as_mat4(estimated_env_from_object, "estimated")
     true = as_mat4(true_env_from_object, "true")
-    elements = symmetry.sample(720) if symmetry.kind == "continuous" else list(symmetry.rotations)
-    errs = [pose_error(est @ s, true) for s in elements]
-    return min(errs, key=lambda e: (round(e[1], 6), e[0]))
+    if point_object is None:
+        point = symmetry.origin if symmetry.kind == "continuous" and symmetry.origin is not None else np.zeros(3)
+    else:
+        point = np.asarray(point_object, dtype=np.float64).reshape(3)
+    elements = np.stack(symmetry.sample(3600) if symmetry.kind == "continuous" else list(symmetry.rotations))
+    cand = est @ elements  # (K, 4, 4)
+    rel = np.einsum("ji,kjl->kil", true[:3, :3], cand[:, :3, :3])  # R_true^T R_k
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    k = int(np.argmax(cos))
+    p_est = cand[k, :3, :3] @ point + cand[k, :3, 3]
+    p_true = true[:3, :3] @ point + true[:3, 3]
+    return float(np.linalg.norm(p_est - p_true)), float(np.degrees(np.arccos(cos[k])))
 
 
 def _normalised(a: Points) -> Points:
@@ -367,6 +394,7 @@ def estimate_pose(
     )
     tree = cKDTree(np.asarray(scene_fine.points))
     model_down = make_cloud(model.down_points, model.down_normals, None)
+    model_feat = make_cloud(model.feature_points, model.feature_normals, None)
     timings["prepare"] = time.perf_counter() - t_start
 
     # 2. global candidates: RANSAC with several seeds (+ previous pose)
@@ -384,8 +412,9 @@ def estimate_pose(
 
     def polish(init: Mat4, source: str, t_begin: float) -> None:
         t = _icp(model_down, scene_down, init, o.icp_scales_voxels[0] * v, 15)
+        t = _icp(model_down, scene_fine, t, o.icp_scales_voxels[1] * v, 15)
         pts = transform_points(t, model.down_points)
-        ev = REG.evaluate_registration(model_down, scene_down, tau, t)
+        ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
         trials.append(
             Trial(
                 source,
@@ -401,11 +430,16 @@ def estimate_pose(
         for k in range(o.n_seeds):
             tk = time.perf_counter()
             o3d.utility.random.seed(o.seed * 1000 + k)
+            # scene → model by default: every visible scene point has its match on the
+            # model, while model points on the hidden side only add false matches
+            from_scene = o.ransac_direction == "scene_to_model" or (
+                o.ransac_direction == "alternate" and k % 2 == 0
+            )
             res = REG.registration_ransac_based_on_feature_matching(
-                model_down,
-                scene_down,
-                f_model,
-                f_scene,
+                scene_down if from_scene else model_feat,
+                model_feat if from_scene else scene_down,
+                f_scene if from_scene else f_model,
+                f_model if from_scene else f_scene,
                 o.mutual_filter,
                 o.ransac_distance_voxels * v,
                 REG.TransformationEstimationPointToPoint(False),
@@ -414,32 +448,53 @@ def estimate_pose(
                 REG.RANSACConvergenceCriteria(o.ransac_max_iterations, o.ransac_confidence),
             )
             if len(res.correspondence_set) >= 3:
-                polish(np.asarray(res.transformation, dtype=np.float64), f"ransac seed {k}", tk)
+                t_res = np.asarray(res.transformation, dtype=np.float64)
+                polish(invert_rigid(t_res) if from_scene else t_res, f"ransac seed {k}", tk)
     if previous is not None:
         polish(previous, "previous pose", time.perf_counter())
-    timings["global"] = time.perf_counter() - t0
     if not trials or max(t.score for t in trials) <= 0.0:
         raise RegistrationError(
             f"no registration candidate explains the scene region ({len(trials)} candidates, "
             f"{len(c_pts)} points within {radius:.3f} m)"
         )
-    ranked = sorted(trials, key=lambda t: -t.score)
-    best = ranked[0]
+    # flip hypotheses: RANSAC on a partial view often gets an elongated object's axes right
+    # but its ends swapped; try the best candidates turned 180° about each principal axis
+    # and about the model's near-symmetries
+    for base in _distinct_ranked(trials, model.symmetry, diam, model.centre_object)[: o.n_flip_bases]:
+        for name, flip in _flips(model):
+            polish(base.env_from_object @ flip, f"{base.source} + {name}", time.perf_counter())
+    timings["global"] = time.perf_counter() - t0
+    distinct = _distinct_ranked(trials, model.symmetry, diam, model.centre_object)
+
+    # 3. refinement of the best few distinct candidates and of the model's near-symmetric
+    #    alternatives of the best one: multi-scale point-to-plane ICP (coarse scales on a
+    #    v/2 subsample, the last on every model point), re-scored at a fine scale where
+    #    near-symmetric alternatives separate
+    t0 = time.perf_counter()
+    model_full = make_cloud(model.points, model.normals, model.colors)
+    model_mid = model_full.voxel_down_sample(v / 2)
+    tau_fine = o.fine_score_voxels * v
+    mid_points = np.asarray(model_mid.points)
+    refined: list[tuple[float, Mat4, Trial]] = []
+    for t in distinct[: o.n_refine]:
+        pose = t.env_from_object
+        for scale in o.icp_scales_voxels:
+            pose = _icp(model_mid, scene_fine, pose, scale * v, o.icp_max_iterations)
+        score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
+        refined.append((score, pose, t))
+    refined.sort(key=lambda r: -r[0])
+    best_fine, env_from_object, best = refined[0]
+    env_from_object = _icp(
+        model_full, scene_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
+    )
     runner_up = next(
         (
-            t.score
-            for t in ranked[1:]
-            if _distinct(t.env_from_object, best.env_from_object, model.symmetry, diam)
+            r[0]
+            for r in refined[1:]
+            if _distinct(r[1], env_from_object, model.symmetry, diam, centre=model.centre_object)
         ),
         0.0,
     )
-
-    # 3. refinement: multi-scale point-to-plane, then coloured ICP
-    t0 = time.perf_counter()
-    model_full = make_cloud(model.points, model.normals, model.colors)
-    env_from_object = best.env_from_object
-    for scale in o.icp_scales_voxels:
-        env_from_object = _icp(model_full, scene_fine, env_from_object, scale * v, o.icp_max_iterations)
     dist_in = o.inlier_voxels * v
     ev = REG.evaluate_registration(model_full, scene_fine, dist_in, env_from_object)
     if o.colored_icp and model.colors is not None and scene_fine.has_colors():
@@ -466,13 +521,17 @@ def estimate_pose(
     coverage: float | None = None
     if cluster is not None:
         posed = cKDTree(transform_points(env_from_object, model.points))
-        d, _ = posed.query(cluster, distance_upper_bound=max(2 * dist_in, 2 * _spacing(model)))
+        d, _ = posed.query(cluster, distance_upper_bound=o.coverage_voxels * v)
         coverage = float(np.isfinite(d).mean())
     rejections = []
     if fitness < o.min_fitness:
         rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
     if rmse > o.max_rmse_voxels * v or fitness == 0.0:
         rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {o.max_rmse_voxels * v * 1000:.1f} mm")
+    if runner_up > o.max_runner_up_ratio * best_fine:
+        rejections.append(
+            f"a distinct pose scores {runner_up / best_fine:.2f} of the best (> {o.max_runner_up_ratio})"
+        )
     if coverage is not None and coverage < o.min_cluster_coverage:
         rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
 
@@ -491,7 +550,7 @@ def estimate_pose(
         fitness=fitness,
         inlier_rmse_m=rmse,
         inlier_distance_m=dist_in,
-        score=best.score,
+        score=best_fine,
         runner_up_score=runner_up,
         cluster_coverage=coverage,
         verified=not rejections,
@@ -504,8 +563,35 @@ def estimate_pose(
         source=best.source,
         trials=tuple(trials),
         n_scene_points=len(c_pts),
+        alternatives=tuple((r[0], r[1]) for r in refined[1:]),
         timings_s=timings,
     )
+
+
+def _distinct_ranked(
+    trials: list[Trial], symmetry: SymmetrySpec, diameter: float, centre: NDArray[np.float64]
+) -> list[Trial]:
+    """Trials by decreasing score, keeping only the best of each set of equivalent poses."""
+    out: list[Trial] = []
+    for t in sorted(trials, key=lambda t: -t.score):
+        if all(
+            _distinct(t.env_from_object, d.env_from_object, symmetry, diameter, 20.0, 0.1, centre)
+            for d in out
+        ):
+            out.append(t)
+    return out
+
+
+def _flips(model: PreparedModel) -> list[tuple[str, Mat4]]:
+    """180° turns about the principal axes through the centroid, plus near-symmetries."""
+    c = model.points - model.centre_object
+    _, vecs = np.linalg.eigh(c.T @ c)
+    out = []
+    for i in range(3):
+        r = 2.0 * np.outer(vecs[:, i], vecs[:, i]) - np.eye(3)  # 180° about axis i
+        out.append((f"flip about principal axis {i}", make_rigid(r, model.centre_object - r @ model.centre_object)))
+    out += [(f"near-symmetry {k}", n) for k, n in enumerate(model.near_symmetries)]
+    return out
 
 
 def _spacing(model: PreparedModel) -> float:
@@ -513,10 +599,19 @@ def _spacing(model: PreparedModel) -> float:
     return float(np.median(d[:, 1]))
 
 
-def _distinct(a: Mat4, b: Mat4, symmetry: SymmetrySpec, diameter: float) -> bool:
-    """True when two poses differ by more than 5° / 5 % of the diameter modulo symmetry."""
-    dt, dr = symmetric_pose_error(a, b, symmetry)
-    return dt > 0.05 * diameter or dr > 5.0
+def _distinct(
+    a: Mat4,
+    b: Mat4,
+    symmetry: SymmetrySpec,
+    diameter: float,
+    max_deg: float = 5.0,
+    max_fraction: float = 0.05,
+    centre: NDArray[np.float64] | None = None,
+) -> bool:
+    """True when two poses differ by more than ``max_deg`` or ``max_fraction`` of the
+    diameter (at the symmetry origin), modulo symmetry."""
+    dt, dr = symmetric_pose_error(a, b, symmetry, centre)
+    return dt > max_fraction * diameter or dr > max_deg
 
 
 # --------------------------------------------------------------------------- CLI

@@ -187,6 +187,7 @@ class SymmetryOptions:
     colour_ratio: float = 1.8
     max_group: int = 24
     max_refinements: int = 40
+    near_ratio: float = 3.0
     seed: int = 0
 
 
@@ -388,3 +389,36 @@ def detect_symmetry(
 def symmetry_axis_of(rotation: Mat4) -> NDArray[np.float64]:
     """Unit rotation axis of a 4×4 rotation (sign arbitrary)."""
     return _rotation_axis(rotation[:3, :3])
+
+
+def near_symmetries(
+    points: Points, spec: SymmetrySpec, options: SymmetryOptions = SymmetryOptions()
+) -> list[Mat4]:
+    """Rotations that *almost* map the surface onto itself but are not symmetries (a hammer
+    turned over about its handle, a clamp flipped): 4×4 ``object_from_object`` about the
+    centroid, whose ICP-refined mean nearest-neighbour ratio is below ``near_ratio``.
+
+    Pose estimation tries each of them from its best candidate, because a partial view
+    often cannot tell them apart at the coarse scale where RANSAC works. Deterministic.
+    """
+    p = as_points(points)
+    scorer = _Scorer(p, None, options)
+    centre = p.mean(axis=0)
+    main, _ = _candidate_axes(p, options.degenerate_gap)
+    group = spec.sample(8)
+    out: list[Mat4] = []
+    for axis in main:
+        for order in (2, 4):
+            cand = rotation_about(axis, 2 * np.pi / order, centre)
+            if any(_same(cand, g, DEDUPE_DEG) for g in group + out):
+                continue
+            if scorer.mean_ratio(cand, coarse=True) > 2 * options.near_ratio:
+                continue
+            refined = scorer.refine(cand)
+            if rotation_angle_deg(refined[:3, :3]) < DEDUPE_DEG:
+                continue
+            if any(_same(refined, g, DEDUPE_DEG) for g in group + out):
+                continue
+            if scorer.mean_ratio(refined) <= options.near_ratio:
+                out.append(refined)
+    return out

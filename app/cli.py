@@ -91,10 +91,8 @@ def serve(host: str, port: int, cpu_concurrency: int) -> int:
         "--log-level",
         "info",
     ]
-    procs = [
-        subprocess.Popen(cmd, env=env, cwd=REPO_ROOT)
-        for cmd in [api, *worker_commands(data_dir, cpu_concurrency)]
-    ]
+    commands = [api, *worker_commands(data_dir, cpu_concurrency)]
+    procs = [subprocess.Popen(cmd, env=env, cwd=REPO_ROOT) for cmd in commands]
     print(f"twindelta: serving on http://{host}:{port} (data in {data_dir})", flush=True)
     stopping = False
 
@@ -106,10 +104,12 @@ def serve(host: str, port: int, cpu_concurrency: int) -> int:
     signal.signal(signal.SIGTERM, stop)
     status = 0
     while not stopping:
-        for proc in procs:
+        for cmd, proc in zip(commands, procs, strict=True):
             code = proc.poll()
             if code is not None:
-                print(f"twindelta: {proc.args[2:5]} exited with {code}; stopping", file=sys.stderr)
+                print(
+                    f"twindelta: {' '.join(cmd[2:5])} exited with {code}; stopping", file=sys.stderr
+                )
                 stopping, status = True, code or 1
         time.sleep(0.5)
     for proc in procs:

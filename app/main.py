@@ -79,7 +79,7 @@ def create_app() -> FastAPI:
         codes = {404: "NotFound", 405: "MethodNotAllowed", 401: "Unauthorized"}
         return _error(exc.status_code, codes.get(exc.status_code, "HTTPError"), str(exc.detail))
 
-    app.middleware("http")(metrics_routes.observe_request)
+    app.add_middleware(metrics_routes.MetricsMiddleware)
     app.include_router(health.router)
     app.include_router(metrics_routes.router)
     for module in (keys, objects, environments, snapshots, jobs, comparisons, webhooks):

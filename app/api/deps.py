@@ -10,9 +10,9 @@ from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 
 from app.core import auth
+from app.core.auth import Principal
 from app.core.db import get_session_factory
 from app.core.enums import Scope
-from app.core.models import ApiKey
 from app.core.settings import Settings, get_settings
 from app.core.storage import LocalStorage
 
@@ -39,14 +39,15 @@ def _bearer(request: Request) -> str | None:
 
 
 def _require(scope: Scope):  # type: ignore[no-untyped-def]
-    def check(request: Request) -> ApiKey:
-        # A short read-only transaction of its own, so auth never holds the request's.
-        with get_session_factory().begin() as session:
+    def check(request: Request) -> Principal:
+        # A short read-only transaction of its own (only on a cache miss), so auth never
+        # holds the request's.
+        with get_session_factory()() as session:
             return auth.authenticate(session, _bearer(request), scope)
 
     return check
 
 
-ReadKey = Annotated[ApiKey, Depends(_require(Scope.read))]
-CaptureKey = Annotated[ApiKey, Depends(_require(Scope.capture))]
-AdminKey = Annotated[ApiKey, Depends(_require(Scope.admin))]
+ReadKey = Annotated[Principal, Depends(_require(Scope.read))]
+CaptureKey = Annotated[Principal, Depends(_require(Scope.capture))]
+AdminKey = Annotated[Principal, Depends(_require(Scope.admin))]

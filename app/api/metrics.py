@@ -5,9 +5,9 @@ every API replica reports the same job figures)."""
 from __future__ import annotations
 
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Response
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
     CollectorRegistry,
@@ -18,6 +18,7 @@ from prometheus_client import (
 from prometheus_client.core import GaugeMetricFamily, SummaryMetricFamily
 from prometheus_client.registry import Collector
 from sqlalchemy import func, select
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.core.db import get_session_factory
 from app.core.models import Job
@@ -49,20 +50,22 @@ class JobCollector(Collector):
             "twindelta_job_duration_seconds", "Run time of finished jobs", labels=["kind"]
         )
         with get_session_factory().begin() as session:
-            for kind, state, n in session.execute(
+            for kind_name, state, n in session.execute(
                 select(Job.kind, Job.state, func.count()).group_by(Job.kind, Job.state)
             ):
-                counts.add_metric([str(kind), str(state)], float(n))
+                counts.add_metric([str(kind_name), str(state)], float(n))
             rows = session.execute(
                 select(Job.kind, Job.started_at, Job.finished_at).where(
                     Job.started_at.is_not(None), Job.finished_at.is_not(None)
                 )
             ).all()
         per_kind: dict[str, list[float]] = {}
-        for kind, started, finished in rows:
-            per_kind.setdefault(str(kind), []).append((finished - started).total_seconds())
-        for kind, values in per_kind.items():
-            durations.add_metric([kind], count_value=len(values), sum_value=sum(values))
+        for job_kind, started, finished in rows:
+            if started is not None and finished is not None:
+                seconds = (finished - started).total_seconds()
+                per_kind.setdefault(str(job_kind), []).append(seconds)
+        for kind_label, values in per_kind.items():
+            durations.add_metric([kind_label], count_value=len(values), sum_value=sum(values))
         yield counts
         yield durations
 
@@ -77,13 +80,28 @@ def metrics() -> Response:
     return Response(generate_latest(REGISTRY), media_type=CONTENT_TYPE_LATEST)
 
 
-async def observe_request(
-    request: Request, call_next: Callable[[Request], Awaitable[Response]]
-) -> Response:
-    started = time.perf_counter()
-    response = await call_next(request)
-    route = request.scope.get("route")
-    path = getattr(route, "path", "unmatched")
-    LATENCY.labels(request.method, path).observe(time.perf_counter() - started)
-    REQUESTS.labels(request.method, path, str(response.status_code)).inc()
-    return response
+class MetricsMiddleware:
+    """Pure ASGI middleware counting requests and timing them by route template."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = time.perf_counter()
+        status = 500
+
+        async def send_and_record(message: Message) -> None:
+            nonlocal status
+            if message["type"] == "http.response.start":
+                status = int(message["status"])
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_and_record)
+        finally:
+            path = getattr(scope.get("route"), "path", "unmatched")
+            LATENCY.labels(scope["method"], path).observe(time.perf_counter() - started)
+            REQUESTS.labels(scope["method"], path, str(status)).inc()

@@ -7,15 +7,17 @@ environments, webhooks and keys and implies the other two.
 from __future__ import annotations
 
 import hashlib
-import hmac
 import secrets
+import threading
+import time
+from dataclasses import dataclass
 
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.enums import Scope
 from app.core.errors import Forbidden, InvalidInput, Unauthorized
-from app.core.models import ApiKey
+from app.core.models import ApiKey, utcnow
 
 KEY_PREFIX = "td_"
 IMPLIED_SCOPES: dict[Scope, set[Scope]] = {
@@ -55,18 +57,67 @@ def create_key(
     return row, token
 
 
-def authenticate(session: Session, token: str | None, needed: Scope) -> ApiKey:
-    """The live key for ``token`` with scope ``needed``; 401 when missing or wrong, 403 when
-    the key lacks the scope."""
+@dataclass(frozen=True)
+class Principal:
+    """Who is calling: the key's id, name and scopes (no secret)."""
+
+    key_id: str
+    name: str
+    scopes: tuple[str, ...]
+
+
+class _KeyCache:
+    """Valid keys by hash for ``ttl_s`` seconds, so polling does not cost a query per
+    request. A revocation made in this process clears it at once; other processes see it
+    within ``ttl_s``. Unknown keys are never cached."""
+
+    def __init__(self, ttl_s: float) -> None:
+        self.ttl_s = ttl_s
+        self._entries: dict[str, tuple[float, Principal]] = {}
+        self._lock = threading.Lock()
+
+    def get(self, digest: str) -> Principal | None:
+        entry = self._entries.get(digest)
+        if entry is None or entry[0] < time.monotonic():
+            return None
+        return entry[1]
+
+    def put(self, digest: str, principal: Principal) -> None:
+        with self._lock:
+            if len(self._entries) > 10_000:
+                self._entries.clear()
+            self._entries[digest] = (time.monotonic() + self.ttl_s, principal)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+
+
+KEY_CACHE = _KeyCache(ttl_s=5.0)
+
+
+def authenticate(session: Session, token: str | None, needed: Scope) -> Principal:
+    """The caller for ``token`` if it holds scope ``needed``; 401 when the key is missing,
+    unknown or revoked, 403 when it lacks the scope."""
     if not token:
         raise Unauthorized("missing API key: send 'Authorization: Bearer <key>'")
     digest = hash_key(token)
-    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == digest))
-    if row is None or row.revoked_at is not None or not hmac.compare_digest(row.key_hash, digest):
-        raise Unauthorized("unknown or revoked API key")
-    if needed not in effective_scopes(row.scopes):
-        raise Forbidden(f"this key's scopes {row.scopes} do not include '{needed}'")
-    return row
+    principal = KEY_CACHE.get(digest)
+    if principal is None:
+        row = session.scalar(select(ApiKey).where(ApiKey.key_hash == digest))
+        if row is None or row.revoked_at is not None:
+            raise Unauthorized("unknown or revoked API key")
+        principal = Principal(row.id, row.name, tuple(row.scopes))
+        KEY_CACHE.put(digest, principal)
+    if needed not in effective_scopes(list(principal.scopes)):
+        raise Forbidden(f"this key's scopes {list(principal.scopes)} do not include '{needed}'")
+    return principal
+
+
+def revoke(row: ApiKey) -> None:
+    """Revoke a key; effective at once in this process, within the cache TTL elsewhere."""
+    row.revoked_at = row.revoked_at or utcnow()
+    KEY_CACHE.clear()
 
 
 def bootstrap_admin_key(session: Session, token: str) -> bool:

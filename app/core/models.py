@@ -12,6 +12,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     DateTime,
     Float,
@@ -118,7 +119,7 @@ class Snapshot(Base):
     storage_prefix: Mapped[str] = mapped_column(String(500))
     n_images: Mapped[int] = mapped_column(Integer, default=0)
     n_detections: Mapped[int] = mapped_column(Integer, default=0)
-    upload_bytes: Mapped[int] = mapped_column(Integer, default=0)
+    upload_bytes: Mapped[int] = mapped_column(BigInteger, default=0)  # up to max_upload_bytes
     has_cameras: Mapped[bool] = mapped_column(Boolean, default=False)
     quality: Mapped[Json] = mapped_column(JSON, default=dict)
     pointcloud_key: Mapped[str | None] = mapped_column(String(500))
@@ -251,6 +252,7 @@ class TwinInstance(Base):
     )
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     pose_quality: Mapped[Json | None] = mapped_column(JSON)
+    centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
     since_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
     created_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
     closed_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
@@ -271,6 +273,7 @@ class InstancePose(Base):
     comparison_id: Mapped[str | None] = mapped_column(ForeignKey("comparisons.id"))
     change_type: Mapped[str] = mapped_column(String(20))
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
 

@@ -2,7 +2,7 @@
 
 Revision ID: 0001
 Revises: 
-Create Date: 2026-11-22 05:08:53.144175
+Create Date: 2026-11-22 05:23:13.965996
 """
 
 from collections.abc import Sequence
@@ -190,6 +190,7 @@ def upgrade() -> None:
     sa.Column('object_id', sa.String(length=36), nullable=True),
     sa.Column('pose', sa.JSON(), nullable=True),
     sa.Column('pose_quality', sa.JSON(), nullable=True),
+    sa.Column('centroid_env', sa.JSON(), nullable=True),
     sa.Column('since_snapshot_id', sa.String(length=36), nullable=False),
     sa.Column('created_snapshot_id', sa.String(length=36), nullable=False),
     sa.Column('closed_snapshot_id', sa.String(length=36), nullable=True),
@@ -261,6 +262,7 @@ def upgrade() -> None:
     sa.Column('comparison_id', sa.String(length=36), nullable=True),
     sa.Column('change_type', sa.String(length=20), nullable=False),
     sa.Column('pose', sa.JSON(), nullable=True),
+    sa.Column('centroid_env', sa.JSON(), nullable=True),
     sa.Column('created_at', sa.DateTime(timezone=True), nullable=False),
     sa.ForeignKeyConstraint(['comparison_id'], ['comparisons.id'], ),
     sa.ForeignKeyConstraint(['instance_id'], ['twin_instances.id'], ondelete='CASCADE'),

@@ -10,7 +10,7 @@ from app.api.schemas.common import ERRORS
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyRead
 from app.core import auth
 from app.core.errors import NotFound
-from app.core.models import ApiKey, utcnow
+from app.core.models import ApiKey
 
 router = APIRouter(prefix="/keys", tags=["keys"], responses=ERRORS)
 
@@ -35,5 +35,5 @@ def revoke_key(key_id: str, session: SessionDep, _key: AdminKey) -> KeyRead:
     row = session.get(ApiKey, key_id)
     if row is None:
         raise NotFound(f"key {key_id} not found")
-    row.revoked_at = row.revoked_at or utcnow()
+    auth.revoke(row)
     return KeyRead.model_validate(row)

@@ -1,0 +1,330 @@
+"""The comparison job: change detection and identification between two snapshots, a pose
+for every identified object that appeared, a re-projection check of each pose, then the
+result, the twin's state and the ``comparison.completed`` event in one transaction."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.core import comparisons, environments, events, jobs, objects, snapshots, twin
+from app.core.db import transaction
+from app.core.enums import ComparisonState, EventType, JobState, ObjectState
+from app.core.models import Change, Job, SnapshotImage, utcnow
+from workers.pipeline.compare.data import Camera, CaptureData, TwinInstance
+from workers.pipeline.compare.options import options_from_json
+from workers.pipeline.compare.results import Change as PipelineChange
+from workers.pipeline.compare.results import CompareResult
+from workers.pipeline.compare.stage import compare_snapshots, render_depth_maps
+from workers.pipeline.errors import PipelineError
+from workers.pipeline.geometry import transform_points
+from workers.pipeline.model import PreparedModel, load_prepared
+from workers.pipeline.pose import SceneCloud, estimate_pose
+from workers.pipeline.verify import reprojection_check
+from workers.runner import JobContext, run_job
+
+POSED_TYPES = {"added", "moved", "swapped"}
+
+
+@dataclass(frozen=True)
+class CaptureFiles:
+    snapshot_id: str
+    cloud_key: str
+    cameras_key: str
+    alignment_residual_m: float
+    detections: dict[str, list[list[float]]]
+
+
+@dataclass(frozen=True)
+class ComparisonInputs:
+    comparison_id: str
+    environment_id: str
+    before: CaptureFiles
+    after: CaptureFiles
+    classes: list[str]
+    options: dict[str, Any]
+    twin: list[TwinInstance]
+    models: dict[str, tuple[str, float, str]]  # class → (object id, diameter m, artifacts key)
+
+
+@dataclass
+class ComparisonOutcome:
+    inputs: ComparisonInputs
+    result: CompareResult
+    changes: list[dict[str, Any]] = field(default_factory=list)
+
+
+def run(job_id: str) -> str:
+    return run_job(job_id, _compute, _persist, on_failure)
+
+
+def _capture(session: Session, snapshot_id: str) -> CaptureFiles:
+    snap = snapshots.get(session, snapshot_id)
+    if not snap.pointcloud_key or not snap.cameras_key:
+        raise PipelineError(f"snapshot {snap.id} has no reconstruction", code="NotReconstructed")
+    images = session.scalars(
+        select(SnapshotImage).where(SnapshotImage.snapshot_id == snapshot_id)
+    ).all()
+    return CaptureFiles(
+        snapshot_id=snap.id,
+        cloud_key=snap.pointcloud_key,
+        cameras_key=snap.cameras_key,
+        alignment_residual_m=float(snap.quality.get("alignment_residual_m") or 0.0),
+        detections={
+            image.name: [
+                [d["class_id"], d["cx"], d["cy"], d["w"], d["h"], d.get("confidence") or 1.0]
+                for d in image.detections
+            ]
+            for image in images
+        },
+    )
+
+
+def _load(ctx: JobContext) -> ComparisonInputs:
+    comparison_id = ctx.job.comparison_id
+    if comparison_id is None:
+        raise ValueError(f"job {ctx.job.id} has no comparison")
+    with transaction() as session:
+        comparison = comparisons.get(session, comparison_id)
+        comparison.state = ComparisonState.running
+        env = environments.get(session, comparison.environment_id)
+        before_seq = snapshots.get(session, comparison.before_id).seq
+        state = twin.state_at(session, env.id, before_seq)
+        library = objects.by_names(session, list(env.classes))
+        return ComparisonInputs(
+            comparison_id=comparison.id,
+            environment_id=env.id,
+            before=_capture(session, comparison.before_id),
+            after=_capture(session, comparison.after_id),
+            classes=list(env.classes),
+            options=dict(comparison.options),
+            twin=[
+                TwinInstance(
+                    instance_id=instance.id,
+                    object_name=instance.object_name,
+                    env_from_object=np.asarray(
+                        record.pose if record.pose is not None else _at(record.centroid_env)
+                    ),
+                    centroid_env=(np.asarray(record.centroid_env) if record.centroid_env else None),
+                )
+                for instance, record in state
+                if record.pose is not None or record.centroid_env is not None
+            ],
+            models={
+                name: (obj.id, float(obj.diameter_m), obj.artifacts_key)
+                for name, obj in library.items()
+                if obj.state == ObjectState.ready and obj.diameter_m and obj.artifacts_key
+            },
+        )
+
+
+def _at(centroid: list[float] | None) -> list[list[float]]:
+    pose = np.eye(4)
+    pose[:3, 3] = centroid or [0.0, 0.0, 0.0]
+    return [[float(v) for v in row] for row in pose]
+
+
+def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
+    cloud = o3d.io.read_point_cloud(ctx.storage.path(files.cloud_key))
+    cameras_json = json.loads(ctx.storage.path(files.cameras_key).read_text())["images"]
+    cameras = tuple(
+        Camera(
+            name=name,
+            k=np.asarray(view["K"], dtype=np.float64),
+            width=int(view["width"]),
+            height=int(view["height"]),
+            cam_from_env=np.linalg.inv(np.asarray(view["env_from_cam"], dtype=np.float64)),
+        )
+        for name, view in sorted(cameras_json.items())
+    )
+    return CaptureData(
+        points_env=np.asarray(cloud.points, dtype=np.float64),
+        cameras=cameras,
+        detections={
+            name: np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+            for name, rows in files.detections.items()
+        },
+        colors=np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
+        alignment_residual_m=files.alignment_residual_m,
+    )
+
+
+def _compute(ctx: JobContext) -> ComparisonOutcome:
+    inputs = _load(ctx)
+    ctx.progress("load", 0.0)
+    before = _capture_data(ctx, inputs.before)
+    after = _capture_data(ctx, inputs.after)
+    options = dict(inputs.options)
+    preset = str(options.pop("preset", "default"))
+    pose_options = options.pop("pose", {})
+    compare_options = options_from_json(preset, options)
+    result = compare_snapshots(
+        before,
+        after,
+        inputs.twin,
+        inputs.classes,
+        {name: diameter for name, (_, diameter, _) in inputs.models.items()},
+        compare_options,
+        ctx.progress,
+    )
+    outcome = ComparisonOutcome(inputs=inputs, result=result)
+    posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in inputs.models]
+    scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
+    depth_maps = render_depth_maps(after, compare_options) if posed else None
+    prepared: dict[str, PreparedModel] = {}
+    for i, change in enumerate(result.changes):
+        ctx.progress("pose", i / max(len(result.changes), 1))
+        record = change.to_json()
+        record["centroid_env"] = change.cluster.centroid.tolist()
+        if change in posed and scene is not None:
+            name = str(change.object_name)
+            if name not in prepared:
+                prepared[name] = load_prepared(ctx.storage.path(inputs.models[name][2]))
+            record.update(
+                _pose(
+                    change,
+                    prepared[name],
+                    scene,
+                    after,
+                    inputs.classes.index(name),
+                    depth_maps,
+                    pose_options,
+                )
+            )
+        outcome.changes.append(record)
+    ctx.progress("pose", 1.0)
+    return outcome
+
+
+def _pose(
+    change: PipelineChange,
+    model: PreparedModel,
+    scene: SceneCloud,
+    after: CaptureData,
+    class_id: int,
+    depth_maps: Any,
+    pose_options: dict[str, Any],
+) -> dict[str, Any]:
+    """Pose, previous pose and quality of one change; a failed registration is reported on
+    the change (``verified: false`` with the reason), never dropped."""
+    from workers.pipeline.pose import POSE_PRESETS
+
+    options = POSE_PRESETS[str(pose_options.get("preset", "default"))]
+    try:
+        pose = estimate_pose(
+            model,
+            scene,
+            cluster_points_env=change.cluster.points_env,
+            previous_env_from_object=change.previous_env_from_object,
+            options=replace(options, **{k: v for k, v in pose_options.items() if k != "preset"}),
+        )
+    except PipelineError as exc:
+        return {
+            "pose": None,
+            "pose_quality": {"verified": False, "reasons": [f"{exc.code}: {exc.detail}"]},
+        }
+    check = reprojection_check(
+        model.points, pose.env_from_object, class_id, after.cameras, after.detections, depth_maps
+    )
+    quality = pose.quality_json()
+    reasons = list(pose.rejections)
+    if not check.passed:
+        reasons.append(
+            f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
+            "with the detector's boxes is too low"
+        )
+    quality.update(
+        verified=bool(pose.verified and check.passed),
+        reasons=reasons,
+        reprojection=check.to_json(),
+        chosen_by=pose.chosen_by,
+    )
+    centre = transform_points(pose.env_from_object, model.centre_object[None, :])[0]
+    return {
+        "pose": pose.env_from_object.tolist(),
+        "pose_quality": quality,
+        "centroid_env": centre.tolist(),
+    }
+
+
+def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> None:
+    inputs, result = outcome.inputs, outcome.result
+    comparison = comparisons.get(session, inputs.comparison_id)
+    data = result.to_json()
+    comparison.state = ComparisonState.succeeded
+    comparison.distances = data["distances"]
+    comparison.clusters = data["clusters"]
+    comparison.options = {**comparison.options, "resolved": data["options"]}
+    comparison.completed_at = utcnow()
+    for position, change in enumerate(outcome.changes):
+        comparison.changes.append(
+            Change(
+                id=change["id"],
+                position=position,
+                type=change["type"],
+                object_name=change.get("object"),
+                instance_id=change.get("instance_id"),
+                pose=change.get("pose"),
+                previous_pose=change.get("previous_pose"),
+                replaced_object=change.get("replaced_object"),
+                identification=change.get("identification"),
+                cluster=change["cluster"],
+                pose_quality=change.get("pose_quality"),
+            )
+        )
+    jobs.get(session, ctx.job.id).result = {"stats": data.get("stats", {})}
+    session.flush()
+    if comparison.automatic and not comparison.applied_to_state:
+        twin.apply_changes(
+            session,
+            inputs.environment_id,
+            comparison.after_id,
+            comparison.id,
+            outcome.changes,
+            {name: object_id for name, (object_id, _, _) in inputs.models.items()},
+        )
+        comparison.applied_to_state = True
+    events.record(
+        session,
+        EventType.comparison_completed,
+        environment_id=inputs.environment_id,
+        subject=f"comparisons/{comparison.id}",
+        data={
+            "comparison": comparison.id,
+            "environment": inputs.environment_id,
+            "before": comparison.before_id,
+            "after": comparison.after_id,
+            "changes": [
+                {
+                    key: change.get(key)
+                    for key in (
+                        "id",
+                        "type",
+                        "object",
+                        "instance_id",
+                        "pose",
+                        "previous_pose",
+                        "replaced_object",
+                        "pose_quality",
+                    )
+                }
+                for change in outcome.changes
+            ],
+            "links": {"comparison": f"/v1/comparisons/{comparison.id}"},
+        },
+    )
+
+
+def on_failure(session: Session, job: Job, code: str, detail: str) -> None:
+    del code, detail
+    if job.comparison_id is None:
+        return
+    comparison = comparisons.get(session, job.comparison_id)
+    cancelled = job.state == JobState.cancelled
+    comparison.state = ComparisonState.cancelled if cancelled else ComparisonState.failed

@@ -433,56 +433,68 @@ def claim(
 ) -> Claim | None:
     """Claim the next attempt of ``delivery_id``'s ordering key: its head (the oldest pending
     delivery, which may be another one than asked for), when it is due, no attempt of the key
-    is in flight and its subscription is active. None when there is nothing to do now."""
+    is in flight and its subscription is active. None when there is nothing to do now.
+
+    One conditional ``UPDATE ... RETURNING``: on PostgreSQL a concurrent claimer blocks on the
+    row and then finds the lease taken; on SQLite the transaction starts with a write, so it
+    waits for the write lock (busy timeout) instead of failing to upgrade a read."""
     now = now or utcnow()
-    asked = session.get(Delivery, delivery_id)
-    if asked is None:
-        return None
-    key = asked.ordering_key
-    in_flight = session.scalar(
-        select(func.count())
-        .select_from(Delivery)
-        .where(
-            Delivery.ordering_key == key,
-            Delivery.state == DeliveryState.pending,
-            Delivery.locked_until > now,
-        )
+    asked, head, busy = aliased(Delivery), aliased(Delivery), aliased(Delivery)
+    key = select(asked.ordering_key).where(asked.id == delivery_id).scalar_subquery()
+    head_id = (
+        select(head.id)
+        .where(head.ordering_key == key, head.state == DeliveryState.pending)
+        .order_by(head.seq, head.id)
+        .limit(1)
+        .scalar_subquery()
     )
-    if in_flight:
-        return None
-    head = session.scalars(_head_query(key)).first()
-    if head is None or (head.next_attempt_at and _aware(head.next_attempt_at) > now):
-        return None
-    sub = session.get(WebhookSubscription, head.subscription_id)
-    event = session.get(Event, head.event_id)
-    if sub is None or event is None or not sub.active:
-        session.execute(
-            update(Delivery)
-            .where(Delivery.id == head.id, Delivery.state == DeliveryState.pending)
-            .values(state=DeliveryState.failed, finished_at=now, last_error="subscription gone")
-        )
-        return None
-    attempt, run_attempt = head.attempts + 1, head.run_attempts + 1
-    claimed = session.execute(
+    in_flight = exists().where(
+        busy.ordering_key == key, busy.state == DeliveryState.pending, busy.locked_until > now
+    )
+    row = session.execute(
         update(Delivery)
         .where(
-            Delivery.id == head.id,
+            Delivery.id == head_id,
             Delivery.state == DeliveryState.pending,
-            Delivery.attempts == head.attempts,
+            or_(Delivery.next_attempt_at.is_(None), Delivery.next_attempt_at <= now),
             or_(Delivery.locked_until.is_(None), Delivery.locked_until <= now),
+            ~in_flight,
         )
         .values(
-            attempts=attempt,
-            run_attempts=run_attempt,
+            attempts=Delivery.attempts + 1,
+            run_attempts=Delivery.run_attempts + 1,
             locked_until=now + timedelta(seconds=lease_s(settings)),
             dispatched_at=None,  # the message is consumed; after the lease, send again
         )
+        .returning(
+            Delivery.id,
+            Delivery.attempts,
+            Delivery.run_attempts,
+            Delivery.subscription_id,
+            Delivery.event_id,
+        )
         .execution_options(synchronize_session=False)
-    )
-    if claimed.rowcount != 1:  # type: ignore[attr-defined]
+    ).first()
+    if row is None:
+        return None
+    claimed_id, attempt, run_attempt, subscription_id, event_id = row
+    sub = session.get(WebhookSubscription, subscription_id)
+    event = session.get(Event, event_id)
+    if sub is None or event is None or not sub.active:
+        session.execute(
+            update(Delivery)
+            .where(Delivery.id == claimed_id)
+            .values(
+                state=DeliveryState.failed,
+                finished_at=now,
+                locked_until=None,
+                last_error="subscription deactivated",
+            )
+            .execution_options(synchronize_session=False)
+        )
         return None
     body = json.dumps(cloudevent(event), separators=(",", ":"), ensure_ascii=False).encode()
-    return Claim(head.id, attempt, run_attempt, sub.url, sub.secret, event.id, body)
+    return Claim(claimed_id, attempt, run_attempt, sub.url, sub.secret, event.id, body)
 
 
 @lru_cache(maxsize=4)
@@ -604,40 +616,48 @@ def _send_next(session: Session, delivery_id: str, now: datetime) -> None:
 
 def dispatch_due(session: Session, now: datetime | None = None, limit: int = 500) -> list[str]:
     """Send a deliver message for every due, unclaimed head of an ordering key that has no
-    message on its way (or whose message seems lost); returns their ids. Run by beat."""
+    message on its way (or whose message seems lost); returns their ids. Run by beat.
+
+    One ``UPDATE ... RETURNING`` marks them sent (a write first, for SQLite's sake)."""
     now = now or utcnow()
-    older = aliased(Delivery)
-    has_older = exists().where(
-        older.ordering_key == Delivery.ordering_key,
-        older.state == DeliveryState.pending,
-        or_(older.seq < Delivery.seq, and_(older.seq == Delivery.seq, older.id < Delivery.id)),
-    )
+    head, older = aliased(Delivery), aliased(Delivery)
     stale = now - timedelta(seconds=REDISPATCH_AFTER_S)
-    not_sent = or_(Delivery.dispatched_at.is_(None), Delivery.dispatched_at < stale)
-    free = or_(Delivery.locked_until.is_(None), Delivery.locked_until <= now)
-    ids = session.scalars(
-        select(Delivery.id)
+
+    def not_sent(d: Any) -> Any:
+        return or_(d.dispatched_at.is_(None), d.dispatched_at < stale)
+
+    has_older = exists().where(
+        older.ordering_key == head.ordering_key,
+        older.state == DeliveryState.pending,
+        or_(older.seq < head.seq, and_(older.seq == head.seq, older.id < head.id)),
+    )
+    due_heads = (
+        select(head.id)
         .where(
-            Delivery.state == DeliveryState.pending,
-            or_(Delivery.next_attempt_at.is_(None), Delivery.next_attempt_at <= now),
-            free,
-            not_sent,
+            head.state == DeliveryState.pending,
+            or_(head.next_attempt_at.is_(None), head.next_attempt_at <= now),
+            or_(head.locked_until.is_(None), head.locked_until <= now),
+            not_sent(head),
             ~has_older,
         )
-        .order_by(Delivery.next_attempt_at)
+        .order_by(head.next_attempt_at)
         .limit(limit)
-    ).all()
-    sent: list[str] = []
-    for delivery_id in ids:
-        marked = session.execute(
+    )
+    sent = list(
+        session.scalars(
             update(Delivery)
-            .where(Delivery.id == delivery_id, Delivery.state == DeliveryState.pending, not_sent)
+            .where(
+                Delivery.id.in_(due_heads),
+                Delivery.state == DeliveryState.pending,
+                not_sent(Delivery),
+            )
             .values(dispatched_at=now)
+            .returning(Delivery.id)
             .execution_options(synchronize_session=False)
         )
-        if marked.rowcount == 1:  # type: ignore[attr-defined]
-            queue.enqueue(session, DELIVER_TASK, delivery_id=delivery_id)
-            sent.append(delivery_id)
+    )
+    for delivery_id in sent:
+        queue.enqueue(session, DELIVER_TASK, delivery_id=delivery_id)
     return sent
 
 

@@ -514,6 +514,8 @@ def _add(staging: _Staging, raw_name: str, where: str, source: BinaryIO, role: s
     name = _file_name(raw_name, where)
     lower = name.lower()
     suffix = PurePosixPath(lower).suffix
+    if role == "detections" and lower == CLASSES_NAME:
+        role = "classes"  # YOLO exports put classes.txt beside the labels
     if role is None:
         if lower == CAMERAS_NAME:
             role = "cameras"

@@ -172,7 +172,9 @@ def test_upload_loose_files(
     assert got["id"] == snap["id"] and got["job"] == job["id"] and got["n_images"] == 3
     assert client.get(f"/v1/jobs/{job['id']}", headers=read).json()["state"] == "queued"
 
-    r2 = upload(client, keys, env_id, as_parts(capture(cameras=False)))
+    classes_part = ("detections", ("classes.txt", "\n".join(CLASSES).encode(), "text/plain"))
+    loose_classes = [*as_parts(capture(cameras=False)), classes_part]
+    r2 = upload(client, keys, env_id, loose_classes)
     assert r2.status_code == 202 and r2.json()["snapshot"]["seq"] == 2
     assert r2.json()["snapshot"]["has_cameras"] is False
     history = client.get(f"/v1/environments/{env_id}/snapshots", headers=read).json()

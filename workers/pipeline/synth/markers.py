@@ -88,7 +88,7 @@ class MarkerSheet:
         xy = points_env[candidates, :2].astype(np.float64)
         half, paper = self.size_m / 2.0, self.size_m / 2.0 + self.margin_m
         for marker_id, env_from_marker in self.env_from_marker.items():
-            local = (xy - env_from_marker[:2, 3]) @ env_from_marker[:2, :2]
+            local = (xy - env_from_marker[:2, 3]) @ np.ascontiguousarray(env_from_marker[:2, :2])
             inside = np.all(np.abs(local) <= paper, axis=1)
             if not inside.any():
                 continue

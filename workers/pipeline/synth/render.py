@@ -83,6 +83,7 @@ class Renderer:
         light = np.asarray(look.light_dir, np.float32)
         self._light = light / np.linalg.norm(light)
         self._focal = np.float32(k[0, 0])
+        self._ray_len = np.linalg.norm(self._rays_cam.reshape(-1, 3), axis=1)
 
     def _add(
         self,
@@ -111,37 +112,48 @@ class Renderer:
         h, w = self.camera.height, self.camera.width
         rot = env_from_cam[:3, :3].astype(np.float32)
         origin = env_from_cam[:3, 3].astype(np.float32)
-        dirs = (self._rays_cam.reshape(-1, 3) @ rot.T).astype(np.float32)
-        rays = np.concatenate([np.broadcast_to(origin, dirs.shape), dirs], axis=1)
-        hit = self.scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
+        # columns instead of a (N, 3) @ (3, 3) BLAS call, which is erratic beside Open3D threads
+        cam = self._rays_cam.reshape(-1, 3)
+        dirs = cam[:, 0:1] * rot[:, 0] + cam[:, 1:2] * rot[:, 1] + rot[:, 2]
+        rays = np.empty((len(dirs), 6), np.float32)
+        rays[:, :3] = origin
+        rays[:, 3:] = dirs
+        hit = self.scene.cast_rays(o3d.core.Tensor.from_numpy(rays))
         t_hit = hit["t_hit"].numpy()
         gids = hit["geometry_ids"].numpy().astype(np.int64)
         prims = hit["primitive_ids"].numpy().astype(np.int64)
         bary = hit["primitive_uvs"].numpy()
+        face_normals = hit["primitive_normals"].numpy()
         valid = np.isfinite(t_hit)
-        t_safe = np.where(valid, t_hit, np.float32(0.0)).astype(np.float32)
-        points = origin + dirs * t_safe[:, None]
-        ray_len = np.linalg.norm(dirs, axis=1).astype(np.float32)
+        depth = np.where(valid, t_hit * self._ray_len, np.float32(np.inf))
         albedo = np.full((len(dirs), 3), _BACKGROUND, np.float32)
-        normal = np.zeros((len(dirs), 3), np.float32)
+        shade = np.ones(len(dirs), np.float32)
         instance = np.full(len(dirs), -1, np.int32)
+        points = np.zeros((len(dirs), 3), np.float32)
         n_static = len(self.geometries) - len(self.placements)
-        hit_ids = np.flatnonzero(valid)
-        order = hit_ids[np.argsort(gids[hit_ids], kind="stable")]
-        bounds = np.flatnonzero(np.diff(gids[order])) + 1
-        for sel in np.split(order, bounds):
-            gid = int(gids[sel[0]])
-            geom = self.geometries[gid]
-            tri = geom.mesh_env.triangles[prims[sel]]
-            b1, b2 = bary[sel, 0:1], bary[sel, 1:2]
-            nrm = geom.normals_env
-            n_sel = (1 - b1 - b2) * nrm[tri[:, 0]] + b1 * nrm[tri[:, 1]] + b2 * nrm[tri[:, 2]]
-            normal[sel] = n_sel
-            cos = np.abs(np.einsum("ij,ij->i", n_sel, dirs[sel])) / ray_len[sel]
-            cos /= np.maximum(np.linalg.norm(n_sel, axis=1), np.float32(1e-6))
-            footprint = t_safe[sel] * ray_len[sel] / self._focal / np.maximum(cos, np.float32(0.2))
+        for gid, geom in enumerate(self.geometries):
+            sel = np.flatnonzero(gids == gid)
+            if len(sel) == 0:
+                continue
+            unit = dirs[sel] / self._ray_len[sel, None]
+            points[sel] = origin + unit * depth[sel, None]
+            if geom.placement is None:
+                normal = face_normals[sel]
+            else:  # smooth shading: barycentric interpolation of vertex normals
+                tri = geom.mesh_env.triangles[prims[sel]]
+                b1, b2 = bary[sel, 0:1], bary[sel, 1:2]
+                nrm = geom.normals_env
+                normal = (1 - b1 - b2) * nrm[tri[:, 0]] + b1 * nrm[tri[:, 1]] + b2 * nrm[tri[:, 2]]
+                normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-6)
+            cos_view = np.einsum("ij,ij->i", normal, unit)
+            towards_light = (normal @ self._light) * -np.sign(cos_view)
+            shade[sel] = self.look.ambient + self.look.diffuse * np.clip(towards_light, 0.0, 1.0)
+            slant = np.maximum(np.abs(cos_view), np.float32(0.2))
+            footprint = depth[sel] / self._focal / slant
             if geom.placement is not None:
-                local = points[sel] @ geom.object_from_env[:3, :3].T.astype(np.float32)
+                local = points[sel] @ np.ascontiguousarray(
+                    geom.object_from_env[:3, :3].T, np.float32
+                )
                 local += geom.object_from_env[:3, 3].astype(np.float32)
                 model = geom.placement.model
                 albedo[sel] = model.surface_colours(prims[sel], bary[sel], local, footprint)
@@ -150,9 +162,16 @@ class Renderer:
                 albedo[sel] = geom.static.texture.colours(points[sel], footprint)
                 if geom.static.name == "floor":
                     self._print_markers(sel, points, albedo, env_from_cam)
-        image = self._shade(albedo, normal, dirs, valid, rng).reshape(h, w, 3)
-        depth = np.where(valid, t_hit * ray_len, np.inf).astype(np.float32)
-        return RenderedView(image, instance.reshape(h, w), depth.reshape(h, w), env_from_cam)
+        rgb = albedo * (shade * np.float32(255.0))[:, None]
+        if self.look.noise_sigma > 0:
+            rgb += rng.standard_normal(rgb.shape, np.float32) * np.float32(self.look.noise_sigma)
+        image: NDArray[np.uint8] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        return RenderedView(
+            image.reshape(h, w, 3),
+            instance.reshape(h, w),
+            depth.astype(np.float32).reshape(h, w),
+            env_from_cam,
+        )
 
     def _print_markers(
         self, sel: NDArray[np.int64], points: F32, albedo: F32, env_from_cam: Mat4
@@ -180,36 +199,15 @@ class Renderer:
         albedo[pix[~flat_edge]] = grey[on_paper][~flat_edge, None]
         pix = pix[flat_edge]
         n = max(1, self.look.marker_supersample)
-        rot, origin = env_from_cam[:3, :3], env_from_cam[:3, 3]
+        cam_to_env, origin = np.ascontiguousarray(env_from_cam[:3, :3].T), env_from_cam[:3, 3]
         acc = np.zeros((len(pix), 3), np.float32)
         for i in range(n):
             for j in range(n):
                 du, dv = ((i + 0.5) / n - 0.5) / self.k[0, 0], ((j + 0.5) / n - 0.5) / self.k[1, 1]
                 cam = self._rays_cam.reshape(-1, 3)[pix] + np.asarray([du, dv, 0.0], np.float32)
-                d = cam @ rot.T
+                d = cam @ cam_to_env
                 t = -origin[2] / np.where(np.abs(d[:, 2]) > 1e-9, d[:, 2], -1e-9)
                 sub = (origin + d * t[:, None]).astype(np.float32)
                 sub_grey, sub_on = self.markers.albedo(sub)
                 acc += np.where(sub_on[:, None], sub_grey[:, None], albedo[pix])
         albedo[pix] = acc / np.float32(n * n)
-
-    def _shade(
-        self,
-        albedo: F32,
-        normal: F32,
-        dirs: F32,
-        valid: NDArray[np.bool_],
-        rng: np.random.Generator,
-    ) -> NDArray[np.uint8]:
-        """Lambert + ambient with normals turned towards the camera, then noise and 8 bits."""
-        norm = np.linalg.norm(normal, axis=1, keepdims=True)
-        normal = normal / np.maximum(norm, 1e-9)
-        facing = np.einsum("ij,ij->i", normal, dirs) > 0
-        normal[facing] *= -1
-        lambert = np.clip(normal @ self._light, 0.0, 1.0)
-        shade = np.where(valid, self.look.ambient + self.look.diffuse * lambert, 1.0)
-        rgb = albedo * shade[:, None].astype(np.float32) * np.float32(255.0)
-        if self.look.noise_sigma > 0:
-            rgb += rng.normal(0.0, self.look.noise_sigma, rgb.shape).astype(np.float32)
-        out: NDArray[np.uint8] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
-        return out

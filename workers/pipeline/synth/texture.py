@@ -30,32 +30,35 @@ _OCTAVES_M: tuple[tuple[float, float], ...] = (
 
 @lru_cache(maxsize=64)
 def _lattice(seed: int) -> F32:
-    """(64³,) uniform values in [0, 1) from ``seed``: the value-noise lattice."""
+    """Value-noise lattice of ``seed``: 64³ uniform values in [0, 1), stored wrap-padded to
+    65³ and flattened (index x + 65·y + 65²·z) so that a cell's 8 corners are fixed offsets."""
     rng = np.random.default_rng([seed, 7919])
-    return rng.random(_LATTICE**3, dtype=np.float32)
+    cube = rng.random((_LATTICE,) * 3, dtype=np.float32)
+    padded: F32 = np.pad(cube, ((0, 1), (0, 1), (0, 1)), mode="wrap").reshape(-1)
+    return padded
+
+
+_ROW, _SLAB = _LATTICE + 1, (_LATTICE + 1) ** 2
+_CORNERS = np.asarray(
+    [0, 1, _ROW, _ROW + 1, _SLAB, _SLAB + 1, _SLAB + _ROW, _SLAB + _ROW + 1], np.int32
+)[:, None]
 
 
 def value_noise(points: F32, cell_m: float, lattice: F32, offset: int) -> F32:
-    """Trilinear value noise in [0, 1) at (N, 3) points (metres) for one cell size."""
+    """Value noise in [0, 1) at (N, 3) points (metres): smoothstep-trilinear interpolation
+    of the lattice at cells of ``cell_m``; ``offset`` shifts to an unrelated lattice region."""
     q = points * np.float32(1.0 / cell_m) + np.float32(offset * 17.31)
     base = np.floor(q)
     frac = q - base
-    frac = frac * frac * (np.float32(3.0) - np.float32(2.0) * frac)
-    i0 = base.astype(np.int64) & (_LATTICE - 1)
-    i1 = (i0 + 1) & (_LATTICE - 1)
-    xs = (i0[:, 0], i1[:, 0])
-    ys = (i0[:, 1] * _LATTICE, i1[:, 1] * _LATTICE)
-    zs = (i0[:, 2] * _LATTICE**2, i1[:, 2] * _LATTICE**2)
-    fx, fy, fz = frac[:, 0], frac[:, 1], frac[:, 2]
-    plane = []
-    for z in zs:
-        rows = []
-        for y in ys:
-            a = lattice[xs[0] + y + z]
-            b = lattice[xs[1] + y + z]
-            rows.append(a + (b - a) * fx)
-        plane.append(rows[0] + (rows[1] - rows[0]) * fy)
-    out: F32 = plane[0] + (plane[1] - plane[0]) * fz
+    frac *= frac * (np.float32(3.0) - np.float32(2.0) * frac)
+    cell = base.astype(np.int32)
+    cell &= _LATTICE - 1
+    index = cell[:, 0] + _ROW * cell[:, 1] + _SLAB * cell[:, 2]
+    fx, fy, fz = np.ascontiguousarray(frac.T)
+    c = np.take(lattice, index[None, :] + _CORNERS)  # (8, N): x fastest, then y, then z
+    x = c[0::2] + (c[1::2] - c[0::2]) * fx  # (4, N)
+    y = x[0::2] + (x[1::2] - x[0::2]) * fy  # (2, N)
+    out: F32 = y[0] + (y[1] - y[0]) * fz
     return out
 
 
@@ -86,10 +89,12 @@ class SolidTexture:
         for k, (cell, amp) in enumerate(_OCTAVES_M):
             size = cell * self.scale
             weight = np.float32(amp / total)
-            if footprint_m is None:
+            fade = None
+            if footprint_m is not None:
+                fade = np.clip(np.float32(size) / footprint_m - np.float32(1.0), 0.0, 1.0)
+            if fade is None or fade.min() >= 1.0:
                 shade += weight * (value_noise(p, size, lattice, k) - np.float32(0.5))
                 continue
-            fade = np.clip(np.float32(size) / footprint_m - np.float32(1.0), 0.0, 1.0)
             live = np.flatnonzero(fade > 0)
             if len(live):
                 noise = value_noise(p[live], size, lattice, k) - np.float32(0.5)

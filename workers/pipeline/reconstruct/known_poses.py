@@ -33,14 +33,14 @@ def _candidate_pairs(
 
 
 def triangulate_known(
-    views: list[DenseView], options: ReconstructOptions, pairs_per_view: int = 8
+    views: list[DenseView], options: ReconstructOptions, pairs_per_view: int = 5
 ) -> tuple[FloatArray, NDArray[np.bool_]]:
     """Sparse env-frame points (N, 3) and their (N, V) visibility from given poses.
 
     Matches keep only pairs within 2 px of their epipolar line, positive depth in both views
     and reprojection error ≤ 2 px. Each point is seen by exactly the two views of its pair.
     """
-    orb = cv2.ORB.create(nfeatures=3000, fastThreshold=10)
+    orb = cv2.ORB.create(nfeatures=1500, fastThreshold=10)
     feats = []
     for v in views:
         gray = cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY)

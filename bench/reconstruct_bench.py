@@ -1,0 +1,165 @@
+"""Accuracy and timing of the reconstruct stage on a generated scene with ground truth.
+
+    python bench/reconstruct_bench.py [--scene DIR] [--work DIR] [--preset default]
+
+Generates (or reuses) a synth scenario, then runs three cases on its "before" capture —
+SfM + markers (intrinsics only), known poses — and the "after" capture refined against the
+"before" cloud. Writes ``bench/results/reconstruct.json``. Metrics: camera-centre error
+after marker alignment (m), cloud distance to the true surface (median, p95, m),
+completeness (share of the visible true surface with a cloud point within 1 cm), timings.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from workers.pipeline.geometry import pose_error
+from workers.pipeline.reconstruct import options_from_preset, parse_cameras, reconstruct
+from workers.pipeline.reconstruct.fusion import read_ply
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _scene(meshes: dict[str, o3d.geometry.TriangleMesh]) -> o3d.t.geometry.RaycastingScene:
+    scene = o3d.t.geometry.RaycastingScene()
+    for mesh in meshes.values():
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    return scene
+
+
+def visible_surface_samples(
+    meshes: dict[str, o3d.geometry.TriangleMesh],
+    cameras: dict[str, Any],
+    n: int = 300_000,
+    min_views: int = 2,
+) -> np.ndarray:
+    """Points sampled on the true surface (area-uniform) seen unoccluded by ≥ min_views."""
+    merged = o3d.geometry.TriangleMesh()
+    for m in meshes.values():
+        merged += m
+    o3d.utility.random.seed(0)
+    pts = np.asarray(merged.sample_points_uniformly(n).points)
+    scene = _scene(meshes)
+    intr = cameras["intrinsics"]
+    fx, fy, cx, cy = intr["params"][:4]
+    w, h = intr["width"], intr["height"]
+    seen = np.zeros(len(pts), np.int32)
+    for pose in cameras["poses"].values():
+        env_from_cam = np.asarray(pose)
+        cam_from_env = np.linalg.inv(env_from_cam)
+        pc = pts @ cam_from_env[:3, :3].T + cam_from_env[:3, 3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = fx * pc[:, 0] / z + cx, fy * pc[:, 1] / z + cy
+        inside = (z > 0.05) & (u >= 0) & (u <= w - 1) & (v >= 0) & (v <= h - 1)
+        centre = env_from_cam[:3, 3]
+        d = pts - centre
+        dist = np.linalg.norm(d, axis=1)
+        rays = np.concatenate([np.repeat(centre[None], len(pts), 0), d / dist[:, None]], 1)
+        hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        seen += inside & (hit >= dist - 0.002)
+    return np.asarray(pts[seen >= min_views])
+
+
+def cloud_metrics(
+    cloud: np.ndarray,
+    meshes: dict[str, o3d.geometry.TriangleMesh],
+    visible: np.ndarray,
+    work_radius_m: float,
+) -> dict[str, float]:
+    """Distances of the cloud to the true surface; completeness over the visible surface,
+    all of it and within the working area (horizontal radius ≤ work_radius_m, inside the
+    camera ring, where the objects stand)."""
+    dist = _scene(meshes).compute_distance(o3d.core.Tensor(cloud.astype(np.float32))).numpy()
+    nn, _ = cKDTree(cloud).query(visible, k=1, workers=2)
+    inner = np.linalg.norm(visible[:, :2], axis=1) <= work_radius_m
+    in_cloud = np.linalg.norm(cloud[:, :2], axis=1) <= work_radius_m
+    return {
+        "work_radius_m": work_radius_m,
+        "completeness_1cm_work_area": float(np.mean(nn[inner] < 0.01)),
+        "distance_median_work_area_m": float(np.median(dist[in_cloud])),
+        "distance_p95_work_area_m": float(np.percentile(dist[in_cloud], 95)),
+        "points": len(cloud),
+        "distance_median_m": float(np.median(dist)),
+        "distance_p90_m": float(np.percentile(dist, 90)),
+        "distance_p95_m": float(np.percentile(dist, 95)),
+        "distance_mean_m": float(np.mean(dist)),
+        "completeness_1cm": float(np.mean(nn < 0.01)),
+        "completeness_5mm": float(np.mean(nn < 0.005)),
+    }
+
+
+def camera_metrics(views: Any, cameras: dict[str, Any]) -> dict[str, float]:
+    errs = [pose_error(v.env_from_cam, np.asarray(cameras["poses"][v.name])) for v in views]
+    t = np.array([e[0] for e in errs])
+    r = np.array([e[1] for e in errs])
+    return {
+        "camera_centre_error_median_m": float(np.median(t)),
+        "camera_centre_error_max_m": float(t.max()),
+        "camera_rotation_error_median_deg": float(np.median(r)),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--scene", type=Path, default=Path("/tmp/twindelta_bench/scene"))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/twindelta_bench/work"))
+    parser.add_argument("--preset", default="default")
+    parser.add_argument("--scenario", default="moved")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reconstruct.json")
+    args = parser.parse_args()
+    from workers.pipeline.synth import PRESETS, generate, load_true_surfaces
+
+    if not (args.scene / "ground_truth.json").exists():
+        t = time.perf_counter()
+        generate(args.scene, args.scenario, seed=1, options=PRESETS["demo"])
+        print(f"generated scene in {time.perf_counter() - t:.1f} s")
+    reference = json.loads((args.scene / "reference.json").read_text())
+    options = options_from_preset(args.preset)
+    results: dict[str, Any] = {"preset": args.preset, "scene": str(args.scene), "cases": {}}
+    before = args.scene / "before"
+    cams_raw = json.loads((before / "cameras.json").read_text())
+    meshes = load_true_surfaces(args.scene, "before")
+    visible = visible_surface_samples(meshes, cams_raw)
+
+    def run(name: str, capture: str, with_poses: bool, reference_cloud: Path | None) -> Path:
+        raw = json.loads((args.scene / capture / "cameras.json").read_text())
+        cams = parse_cameras(raw if with_poses else {"intrinsics": raw["intrinsics"]})
+        work = args.work / name
+        import shutil
+
+        shutil.rmtree(work, ignore_errors=True)
+        res = reconstruct(
+            args.scene / capture / "images", work, options, cams, reference, reference_cloud
+        )
+        cloud, _ = read_ply(res.cloud_path)
+        m = load_true_surfaces(args.scene, capture)
+        vis = visible if capture == "before" else visible_surface_samples(m, raw)
+        case = {
+            "quality": res.quality,
+            **camera_metrics(res.views, raw),
+            **cloud_metrics(cloud, m, vis),
+        }
+        results["cases"][name] = case
+        print(name, json.dumps({k: v for k, v in case.items() if k != "quality"}, indent=1))
+        print(" timings", res.quality["timings_s"])
+        return res.cloud_path
+
+    before_cloud = run("sfm_markers", "before", False, None)
+    run("known_poses", "before", True, None)
+    run("sfm_markers_after_refined", "after", False, before_cloud)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(results, indent=1, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

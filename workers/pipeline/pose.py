@@ -82,7 +82,7 @@ class PoseOptions:
     n_flip_bases: int = 2
     fine_score_voxels: float = 0.3
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
-    icp_max_iterations: int = 30
+    icp_max_iterations: int = 20
     colored_icp: bool = True
     inlier_voxels: float = 0.5
     min_fitness: float = 0.25
@@ -265,18 +265,52 @@ def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     return float(np.mean(np.clip(1.0 - (d / tau) ** 2, 0.0, None)))
 
 
-def _icp(
-    src: o3d.geometry.PointCloud, dst: o3d.geometry.PointCloud, init: Mat4, dist: float, iters: int
-) -> Mat4:
-    reg = REG.registration_icp(
-        src,
-        dst,
-        dist,
-        init,
-        REG.TransformationEstimationPointToPlane(),
-        REG.ICPConvergenceCriteria(relative_fitness=1e-7, relative_rmse=1e-7, max_iteration=iters),
-    )
-    return np.asarray(reg.transformation, dtype=np.float64).copy()
+class _Target:
+    """A scene cloud with unit normals and a KD-tree built once for every ICP run."""
+
+    def __init__(self, pcd: o3d.geometry.PointCloud) -> None:
+        self.points = np.asarray(pcd.points, dtype=np.float64).copy()
+        self.normals = _normalised(np.asarray(pcd.normals, dtype=np.float64))
+        self.tree = cKDTree(self.points)
+
+
+def _skew_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
+
+
+def _icp(src: Points, target: _Target, init: Mat4, dist: float, iters: int) -> Mat4:
+    """Point-to-plane ICP of (N, 3) object points onto ``target``; returns env_from_object.
+
+    Gauss-Newton on the linearised point-to-plane residual, pairs farther than ``dist``
+    ignored; stops when the update is below 1e-5 rad and 1e-4 ``dist``.
+    """
+    pose = init.copy()
+    for _ in range(iters):
+        p = src @ pose[:3, :3].T + pose[:3, 3]
+        d, idx = target.tree.query(p, distance_upper_bound=dist)
+        ok = np.isfinite(d)
+        if ok.sum() < 6:
+            break
+        p, q, n = p[ok], target.points[idx[ok]], target.normals[idx[ok]]
+        r = np.einsum("ij,ij->i", p - q, n)
+        jac = np.hstack([np.cross(p, n), n])
+        h = jac.T @ jac
+        try:
+            x = np.linalg.solve(h + 1e-12 * np.eye(6), -jac.T @ r)
+        except np.linalg.LinAlgError:
+            break
+        step = np.eye(4)
+        step[:3, :3] = _skew_exp(x[:3])
+        step[:3, 3] = x[3:]
+        pose = step @ pose
+        if np.linalg.norm(x[:3]) < 1e-5 and np.linalg.norm(x[3:]) < 1e-4 * dist:
+            break
+    return pose
 
 
 def _canonical(
@@ -392,7 +426,9 @@ def estimate_pose(
     scene_fpfh = fpfh_features(
         scene_down, v, float(n_opts.get("normal_radius_voxels", 2.0)), float(n_opts.get("feature_radius_voxels", 5.0))
     )
-    tree = cKDTree(np.asarray(scene_fine.points))
+    target_down = _Target(scene_down)
+    target_fine = _Target(scene_fine)
+    tree = target_fine.tree
     model_down = make_cloud(model.down_points, model.down_normals, None)
     model_feat = make_cloud(model.feature_points, model.feature_normals, None)
     timings["prepare"] = time.perf_counter() - t_start
@@ -411,8 +447,8 @@ def estimate_pose(
     trials: list[Trial] = []
 
     def polish(init: Mat4, source: str, t_begin: float) -> None:
-        t = _icp(model_down, scene_down, init, o.icp_scales_voxels[0] * v, 15)
-        t = _icp(model_down, scene_fine, t, o.icp_scales_voxels[1] * v, 15)
+        t = _icp(model.down_points, target_down, init, o.icp_scales_voxels[0] * v, 10)
+        t = _icp(model.down_points, target_fine, t, o.icp_scales_voxels[1] * v, 10)
         pts = transform_points(t, model.down_points)
         ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
         trials.append(
@@ -479,13 +515,13 @@ def estimate_pose(
     for t in distinct[: o.n_refine]:
         pose = t.env_from_object
         for scale in o.icp_scales_voxels:
-            pose = _icp(model_mid, scene_fine, pose, scale * v, o.icp_max_iterations)
+            pose = _icp(mid_points, target_fine, pose, scale * v, o.icp_max_iterations)
         score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
         refined.append((score, pose, t))
     refined.sort(key=lambda r: -r[0])
     best_fine, env_from_object, best = refined[0]
     env_from_object = _icp(
-        model_full, scene_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
+        model.points, target_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
     )
     runner_up = next(
         (

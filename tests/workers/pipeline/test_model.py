@@ -1,0 +1,191 @@
+"""Library-object preparation: loading, units, sampling, work directory, symmetry."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from workers.pipeline.__main__ import main as pipeline_main
+from workers.pipeline.errors import InputError
+from workers.pipeline.model import (
+    MODEL_PRESETS,
+    ModelOptions,
+    diameter_m,
+    load_prepared,
+    load_surface,
+    prepare_model,
+)
+from workers.pipeline.symmetry import (
+    SymmetrySpec,
+    detect_symmetry,
+    rotation_about,
+    spec_from_json,
+    spec_to_json,
+)
+
+FAST = MODEL_PRESETS["fast"]
+
+
+def _box_mesh(path: Path, size_xyz: tuple[float, float, float]) -> Path:
+    box = o3d.geometry.TriangleMesh.create_box(*size_xyz)
+    box.compute_triangle_normals()
+    o3d.io.write_triangle_mesh(str(path), box)
+    return path
+
+
+def test_diameter_of_a_box_is_its_space_diagonal(tmp_path: Path) -> None:
+    # sampled surface points reach the corners only approximately: 1 % tolerance
+    pts, _, _ = load_surface(_box_mesh(tmp_path / "b.ply", (0.3, 0.2, 0.1)), ModelOptions())
+    assert diameter_m(pts) == pytest.approx(np.sqrt(0.3**2 + 0.2**2 + 0.1**2), rel=0.01)
+
+
+@pytest.mark.parametrize(("units", "scale"), [("m", 1.0), ("cm", 100.0), ("mm", 1000.0)])
+def test_units_are_converted_to_metres(tmp_path: Path, units: str, scale: float) -> None:
+    # the same 1.0 × 0.5 × 0.2 m box written in each unit; 1-2 % sampling tolerance
+    mesh = _box_mesh(tmp_path / "box.stl", (1.0 * scale, 0.5 * scale, 0.2 * scale))
+    model = prepare_model(mesh, tmp_path / "out", FAST, units=units)
+    assert model.diameter_m == pytest.approx(np.sqrt(1.0 + 0.25 + 0.04), rel=0.01)
+    assert model.voxel_m == pytest.approx(model.diameter_m / FAST.voxel_divisor)
+    assert np.ptp(model.points, axis=0) == pytest.approx([1.0, 0.5, 0.2], rel=0.02)
+
+
+def test_implausible_size_suggests_wrong_units(tmp_path: Path) -> None:
+    mesh = _box_mesh(tmp_path / "box.ply", (1000.0, 500.0, 200.0))  # millimetres
+    with pytest.raises(InputError, match="wrong units"):
+        prepare_model(mesh, tmp_path / "out", FAST, units="m")
+
+
+def test_box_symmetry_is_the_dihedral_group_of_eight(tmp_path: Path) -> None:
+    # 100 × 50 × 20 box: three 180° turns and the identity; a square prism has eight
+    mesh = _box_mesh(tmp_path / "box.ply", (0.1, 0.05, 0.02))
+    assert len(prepare_model(mesh, tmp_path / "a").symmetry.rotations) == 4
+    square = _box_mesh(tmp_path / "sq.ply", (0.05, 0.05, 0.12))
+    assert len(prepare_model(square, tmp_path / "b").symmetry.rotations) == 8
+
+
+@pytest.mark.parametrize(
+    ("content", "suffix", "message"),
+    [
+        (b"", ".ply", "empty"),
+        (b"this is not a mesh\n", ".obj", "no triangles"),
+        (b"ply\nformat ascii 1.0\nelement vertex 0\nend_header\n", ".ply", "fewer than 10"),
+        (b"solid x\nendsolid x\n", ".stl", "no triangles"),
+        (b"abc", ".docx", "unsupported"),
+    ],
+)
+def test_bad_or_empty_files_raise_input_error(
+    tmp_path: Path, content: bytes, suffix: str, message: str
+) -> None:
+    path = tmp_path / f"bad{suffix}"
+    path.write_bytes(content)
+    with pytest.raises(InputError, match=message):
+        prepare_model(path, tmp_path / "out", FAST)
+    assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_missing_file_and_bad_units_raise_input_error(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not found"):
+        prepare_model(tmp_path / "nope.obj", tmp_path / "out", FAST)
+    mesh = _box_mesh(tmp_path / "box.ply", (1.0, 1.0, 1.0))
+    with pytest.raises(InputError, match="units"):
+        prepare_model(mesh, tmp_path / "out", FAST, units="inch")
+
+
+def test_textured_obj_gets_texture_colours_and_work_dir_resumes(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    model = prepare_model(mesh, tmp_path / "drill")
+    assert model.name == "power_drill"
+    assert model.colors is not None
+    # the drill is mostly dark with a bright teal/yellow body: colours must vary, not be
+    # the 0.5 grey that a missing texture gives
+    assert model.colors.std(axis=0).min() > 0.05
+    assert model.points.shape == model.normals.shape == (6000, 3)
+    assert np.allclose(np.linalg.norm(model.normals, axis=1), 1.0, atol=1e-6)
+    assert 0.2 < model.diameter_m < 0.3  # a 22 cm drill, in metres
+    for name in ("summary.json", "model.ply", "model_down.ply", "features.npy", "fpfh.npy"):
+        assert (tmp_path / "drill" / name).is_file()
+    assert model.fpfh.shape == (len(model.feature_points), 33)
+    stamp = (tmp_path / "drill" / "summary.json").stat().st_mtime_ns
+    again = prepare_model(mesh, tmp_path / "drill")
+    assert (tmp_path / "drill" / "summary.json").stat().st_mtime_ns == stamp  # not recomputed
+    loaded = load_prepared(tmp_path / "drill")
+    for m in (again, loaded):
+        assert np.allclose(m.points, model.points)
+        assert np.allclose(m.fpfh, model.fpfh, atol=1e-4)  # stored as float32
+        assert m.diameter_m == model.diameter_m
+
+
+def test_load_prepared_refuses_an_incomplete_directory(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="summary.json"):
+        load_prepared(tmp_path)
+
+
+# ---------------------------------------------------------------- symmetry
+
+
+@pytest.mark.parametrize(
+    ("name", "kind", "n_rotations"),
+    [
+        ("power_drill", "none", 1),
+        ("bowl", "continuous", 1),  # about its axis, no flip: a bowl upside down differs
+        ("master_chef_can", "continuous", 2),  # plain cylinder geometry: flip too
+        ("tomato_soup_can", "continuous", 2),
+        ("wood_block", "discrete", 8),  # square prism: D4
+        ("rubiks_cube", "discrete", 24),  # cube geometry: the octahedral group
+    ],
+)
+def test_symmetry_of_ycb_objects(shared_data: Path, name: str, kind: str, n_rotations: int) -> None:
+    pts, _, colors = load_surface(shared_data / "ycb" / name / "textured.obj", ModelOptions())
+    spec = detect_symmetry(pts, colors)
+    assert spec.kind == kind
+    assert len(spec.rotations) == n_rotations
+    if kind == "continuous":
+        assert spec.axis is not None
+        assert abs(spec.axis[2]) > 0.99  # YCB cans and bowl stand on the model's z axis
+    # every element really maps the surface onto itself (mean NN distance ≪ object size)
+    tree = o3d.geometry.KDTreeFlann(o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts)))
+    for s in spec.sample(6)[1:]:
+        moved = pts[::20] @ s[:3, :3].T + s[:3, 3]
+        d = [np.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in moved]
+        assert float(np.mean(d)) < 0.004
+    if kind != "none":
+        assert spec.appearance_breaks  # labels and coloured faces break the symmetry
+
+
+def test_symmetry_spec_json_round_trip_and_validation() -> None:
+    turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.pi, np.array([0.1, 0.0, 0.0]))
+    spec = spec_from_json({"kind": "discrete", "rotations": [turn.tolist()]})
+    assert len(spec.rotations) == 2  # identity added first
+    assert np.allclose(spec.rotations[0], np.eye(4))
+    again = spec_from_json(json.loads(json.dumps(spec_to_json(spec))))
+    assert np.allclose(again.rotations[1], turn)
+    cont = spec_from_json({"kind": "continuous", "axis": [0, 0, 2], "origin": [0, 0, 0]})
+    assert cont.axis is not None and np.allclose(cont.axis, [0, 0, 1])
+    assert spec_to_json(SymmetrySpec()) == {"kind": "none", "appearance_breaks": False}
+    for bad in (
+        {"kind": "spiral"},
+        {"kind": "discrete", "rotations": [np.diag([1.0, 1.0, -1.0, 1.0]).tolist()]},
+        {"kind": "discrete", "rotations": [[1, 2, 3]]},
+        {"kind": "continuous", "axis": [0, 0, 0]},
+        "none",
+    ):
+        with pytest.raises(InputError):
+            spec_from_json(bad)
+
+
+def test_explicit_symmetry_overrides_detection_and_cli_runs(tmp_path: Path) -> None:
+    mesh = _box_mesh(tmp_path / "box.ply", (0.1, 0.05, 0.02))
+    model = prepare_model(mesh, tmp_path / "out", FAST, symmetry=SymmetrySpec())
+    assert model.symmetry.kind == "none"
+    assert model.summary["symmetry_source"] == "explicit"
+    code = pipeline_main(["model", str(mesh), "--out", str(tmp_path / "cli"), "--units", "m"])
+    assert code == 0
+    summary = json.loads((tmp_path / "cli" / "summary.json").read_text())
+    assert summary["symmetry"]["kind"] == "discrete"
+    assert pipeline_main(["model", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")]) == 2

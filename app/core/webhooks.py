@@ -48,7 +48,7 @@ from typing import Any
 from urllib.parse import urlsplit
 
 import httpx
-from sqlalchemy import and_, exists, func, or_, select, update
+from sqlalchemy import Select, and_, exists, func, or_, select, update
 from sqlalchemy.orm import Session, aliased
 
 from app.core import queue
@@ -268,7 +268,7 @@ def list_deliveries(
     if state is not None:
         query = query.where(Delivery.state == state)
     rows = session.execute(
-        query.order_by(Delivery.seq.desc(), Delivery.id.desc()).limit(limit)
+        query.order_by(Delivery.created_at.desc(), Delivery.seq.desc()).limit(limit)
     ).all()
     attempts = _attempts_of(session, [d.id for d, _ in rows])
     return [(d, e, attempts[d.id]) for d, e in rows]
@@ -419,7 +419,7 @@ def cloudevent(event: Event) -> dict[str, Any]:
     return body
 
 
-def _head_query(key: str) -> Any:
+def _head_query(key: str) -> Select[Delivery]:
     return (
         select(Delivery)
         .where(Delivery.ordering_key == key, Delivery.state == DeliveryState.pending)

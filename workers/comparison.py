@@ -258,8 +258,15 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
     comparison = comparisons.get(session, inputs.comparison_id)
     data = result.to_json()
     comparison.state = ComparisonState.succeeded
-    comparison.distances = data["distances"]
-    comparison.clusters = data["clusters"]
+    comparison.distances = {
+        side: {**stats, "histogram": _histogram(raw, float(stats["threshold"]))}
+        for side, stats, raw in (
+            ("added", data["distances"]["added"], result.added_distances_m),
+            ("removed", data["distances"]["removed"], result.removed_distances_m),
+        )
+    }
+    boxes = {c.id: {name: box.tolist() for name, box in c.boxes.items()} for c in result.clusters}
+    comparison.clusters = [{**row, "boxes": boxes.get(row["id"], {})} for row in data["clusters"]]
     comparison.options = {**comparison.options, "resolved": data["options"]}
     comparison.completed_at = utcnow()
     for position, change in enumerate(outcome.changes):
@@ -319,6 +326,16 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
             "links": {"comparison": f"/v1/comparisons/{comparison.id}"},
         },
     )
+
+
+def _histogram(distances_m: Any, threshold_m: float, bins: int = 60) -> dict[str, Any]:
+    """Counts of C2C distances in ``bins`` equal bins up to max(2 × threshold, p99), metres
+    (the thesis's distribution figures)."""
+    d = np.asarray(distances_m, dtype=np.float64)
+    d = d[np.isfinite(d)]
+    top = max(2.0 * threshold_m, float(np.percentile(d, 99)) if len(d) else 0.0, 1e-6)
+    counts, edges = np.histogram(np.clip(d, 0.0, top), bins=bins, range=(0.0, top))
+    return {"bin_width_m": float(edges[1] - edges[0]), "counts": counts.tolist()}
 
 
 def on_failure(session: Session, job: Job, code: str, detail: str) -> None:

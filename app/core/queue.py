@@ -109,6 +109,8 @@ def enqueue(session: Session, task_name: str, **kwargs: Any) -> None:
 
 @event.listens_for(Session, "after_commit")
 def _send_after_commit(session: Session) -> None:
+    if session.in_nested_transaction():  # a released SAVEPOINT is not the commit
+        return
     pending = session.info.pop(_PENDING, [])
     for task_name, kwargs in pending:
         try:
@@ -117,6 +119,9 @@ def _send_after_commit(session: Session) -> None:
             log.exception("could not send %s %s; the sweeper will retry", task_name, kwargs)
 
 
-@event.listens_for(Session, "after_rollback")
-def _drop_on_rollback(session: Session) -> None:
-    session.info.pop(_PENDING, None)
+@event.listens_for(Session, "after_soft_rollback")
+def _drop_on_rollback(session: Session, previous_transaction: Any) -> None:
+    # Only the outermost rollback drops the buffer; a SAVEPOINT rolled back inside a
+    # transaction that still commits keeps what was enqueued before it.
+    if previous_transaction.parent is None:
+        session.info.pop(_PENDING, None)

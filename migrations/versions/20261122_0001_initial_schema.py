@@ -2,7 +2,7 @@
 
 Revision ID: 0001
 Revises: 
-Create Date: 2026-11-22 05:23:13.965996
+Create Date: 2026-11-22 05:26:42.670146
 """
 
 from collections.abc import Sequence
@@ -82,7 +82,7 @@ def upgrade() -> None:
     sa.Column('storage_prefix', sa.String(length=500), nullable=False),
     sa.Column('n_images', sa.Integer(), nullable=False),
     sa.Column('n_detections', sa.Integer(), nullable=False),
-    sa.Column('upload_bytes', sa.Integer(), nullable=False),
+    sa.Column('upload_bytes', sa.BigInteger(), nullable=False),
     sa.Column('has_cameras', sa.Boolean(), nullable=False),
     sa.Column('quality', sa.JSON(), nullable=False),
     sa.Column('pointcloud_key', sa.String(length=500), nullable=True),

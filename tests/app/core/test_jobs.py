@@ -104,3 +104,17 @@ def test_sweeper_resends_requeues_and_fails(
     sent_tasks.calls.clear()
     with session_factory.begin() as s:
         assert jobs.sweep(s, settings, now=later + timedelta(seconds=1))["resent"] == 0
+
+
+def test_savepoint_release_does_not_send_early(
+    session_factory: sessionmaker[Session], sent_tasks: SentTasks
+) -> None:
+    with session_factory.begin() as s:
+        job = jobs.create(s, JobKind.object, "object.prepare")
+        with s.begin_nested():
+            pass  # releasing a SAVEPOINT must not flush the buffer
+        assert sent_tasks.calls == []
+        with pytest.raises(RuntimeError), s.begin_nested():
+            raise RuntimeError("a savepoint rolled back keeps the outer buffer")
+        assert sent_tasks.calls == []
+    assert sent_tasks.calls == [("object.prepare", {"job_id": job.id})]

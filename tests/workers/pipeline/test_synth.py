@@ -13,7 +13,7 @@ import open3d as o3d
 import pytest
 
 from workers.pipeline.errors import InputError
-from workers.pipeline.geometry import invert_rigid, transform_points
+from workers.pipeline.geometry import invert_rigid, make_rigid, transform_points
 from workers.pipeline.synth import (
     CAPTURES,
     PRESETS,
@@ -31,7 +31,8 @@ from workers.pipeline.synth import (
 )
 from workers.pipeline.synth.cameras import camera_path, intrinsics_matrix
 from workers.pipeline.synth.cli import cli
-from workers.pipeline.synth.markers import marker_corners_m
+from workers.pipeline.synth.markers import marker_corners_m, rot_z
+from workers.pipeline.synth.symmetry import symmetric_pose_error
 
 TINY = PRESETS["tiny"]
 
@@ -265,3 +266,42 @@ def test_ycb_models_render_with_their_texture(shared_data: Path) -> None:
     colours = np.concatenate(pixels)
     assert len(colours) > 100
     assert float(colours.std(axis=0).mean()) > 15.0
+
+
+def test_texture_is_view_consistent(moved: tuple[Path, Scenario]) -> None:
+    """A floor point has the same colour in two views (solid texture, Lambertian shading):
+    pixel pairs that see one point differ far less than random pixel pairs do."""
+    _, scenario = moved
+    views = [view for _, view in render_capture(scenario, "before", TINY)][:2]
+    k = intrinsics_matrix(TINY.camera)
+    k_inv = np.linalg.inv(k)
+    first, second = views
+    v, u = np.nonzero(np.isfinite(first.depth_m) & (first.instance < 0))
+    rays = np.column_stack([u, v, np.ones_like(u)]) @ k_inv.T
+    points_cam = rays / np.linalg.norm(rays, axis=1, keepdims=True) * first.depth_m[v, u, None]
+    points_env = transform_points(first.env_from_cam, points_cam)
+    in_second = transform_points(invert_rigid(second.env_from_cam), points_env)
+    pix = in_second @ k.T
+    uv = np.rint(pix[:, :2] / pix[:, 2:]).astype(int)
+    h, w = first.depth_m.shape
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+    u2, v2 = uv[inside, 0], uv[inside, 1]
+    seen = np.abs(second.depth_m[v2, u2] - np.linalg.norm(in_second[inside], axis=1)) < 0.005
+    assert seen.sum() > 2000
+    a = first.image[v[inside][seen], u[inside][seen]].astype(float)
+    b = second.image[v2[seen], u2[seen]].astype(float)
+    same = float(np.median(np.abs(a - b)))
+    shuffled = float(np.median(np.abs(a - np.random.default_rng(0).permutation(b))))
+    assert same < 6.0 and shuffled > 3 * same
+
+
+def test_symmetric_pose_error_forgives_turns_about_the_axis() -> None:
+    drum = next(m for m in builtin_models() if m.symmetry is not None)
+    true = make_rigid(np.eye(3), [0.3, -0.2, 0.0])
+    turn = np.eye(4)
+    turn[:3, :3] = rot_z(np.radians(37.0))
+    assert symmetric_pose_error(true @ turn, true, drum.symmetry) == pytest.approx((0, 0), abs=0.3)
+    t_err, r_err = symmetric_pose_error(true @ turn, true, None)
+    assert r_err == pytest.approx(37.0, abs=1e-6) and t_err == pytest.approx(0.0, abs=1e-12)
+    tilt = make_rigid(np.asarray([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), [0, 0, 0])
+    assert symmetric_pose_error(true @ tilt, true, drum.symmetry)[1] == pytest.approx(90.0)

@@ -11,16 +11,17 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, as_mat4, make_rigid, pose_error
 
 
-def _axis_rotation(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+def _axis_rotation(axis: NDArray[np.float64], angle_rad: float) -> NDArray[np.float64]:
     """(3, 3) rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues)."""
     k = np.asarray([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+    out: NDArray[np.float64] = np.eye(3) + np.sin(angle_rad) * k + (1 - np.cos(angle_rad)) * (k @ k)
+    return out
 
 
 def equivalent_transforms(symmetry: dict[str, Any] | None, steps: int = 720) -> list[Mat4]:

@@ -106,6 +106,7 @@ def test_ground_truth_round_trips_through_the_files(moved: tuple[Path, Scenario]
         assert len(cameras["poses"]) == len(path) == TINY.path.n_views
         for name, env_from_cam in zip(sorted(cameras["poses"]), path, strict=True):
             np.testing.assert_allclose(cameras["poses"][name], env_from_cam, atol=1e-12)
+            assert gt["camera_poses"][capture][name] == cameras["poses"][name]
             assert (out / capture / "images" / name).is_file()
     reference = json.loads((out / "reference.json").read_text())
     assert reference == gt["reference"] == scenario.markers.reference()
@@ -238,9 +239,11 @@ def test_builtin_shapes_need_no_shared_data(tmp_path: Path) -> None:
         assert 0.15 <= extent.max() <= 0.40
         assert m.mesh.signed_volume() > 0
     out = tmp_path / "cli"
-    options = ["--preset", "tiny", "--views", "2", "--seed", "1"]
+    options = ["--preset", "tiny", "--views", "2", "--seed", "1", "--no-poses"]
     assert cli(["--scenario", "added", "--out", str(out), *options]) == 0
     assert len(list((out / "after" / "images").glob("*.png"))) == 2
+    assert "poses" not in json.loads((out / "after" / "cameras.json").read_text())
+    assert len(json.loads((out / "ground_truth.json").read_text())["camera_poses"]["after"]) == 2
     assert sorted(p.stem for p in (out / "objects").glob("*.ply")) == sorted(m.name for m in models)
 
 

@@ -1,10 +1,11 @@
 """``python -m workers.pipeline synth --scenario moved --out DIR [--seed 0] [--preset demo]
-[--ycb DIR --objects power_drill,mustard_bottle,...]``."""
+[--ycb DIR --objects power_drill,mustard_bottle,...] [--views N] [--poses | --no-poses]``."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from workers.pipeline.errors import PipelineError
@@ -35,12 +36,21 @@ def cli(argv: list[str]) -> int:
         "--objects", help="comma-separated model names (with --ycb) or mesh file paths"
     )
     parser.add_argument("--views", type=int, help="override the preset's number of views")
+    poses = parser.add_mutually_exclusive_group()
+    poses.add_argument(
+        "--poses",
+        dest="poses",
+        action="store_true",
+        default=None,
+        help="write the true camera poses into cameras.json",
+    )
+    poses.add_argument("--no-poses", dest="poses", action="store_false")
     args = parser.parse_args(argv)
     options = preset(args.preset)
     if args.views is not None:
-        from dataclasses import replace
-
         options = replace(options, path=replace(options.path, n_views=args.views))
+    if args.poses is not None:
+        options = replace(options, write_poses=args.poses)
     try:
         scene = generate(
             args.out, args.scenario, args.seed, options, _models(args.ycb, args.objects)

@@ -21,7 +21,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from workers.pipeline.errors import InputError, ShapeError
-from workers.pipeline.geometry import as_mat4
+from workers.pipeline.geometry import Mat4, as_mat4
 from workers.pipeline.synth.cameras import camera_path, cameras_json_intrinsics, intrinsics_matrix
 from workers.pipeline.synth.options import PRESETS, DetectionOptions, RoomOptions, SynthOptions
 from workers.pipeline.synth.render import RenderedView, Renderer
@@ -124,6 +124,13 @@ def view_name(index: int, options: SynthOptions) -> str:
     return f"view_{index:03d}.{ext}"
 
 
+def capture_path(scenario: Scenario, capture: str, options: SynthOptions) -> list[Mat4]:
+    """True ``env_from_cam`` (4×4, OpenCV axes) of every view of ``capture``, in view order."""
+    scenario.capture(capture)  # validates the name
+    rng = np.random.default_rng([scenario.seed, 2, CAPTURES.index(capture)])
+    return camera_path(options.path, rng)
+
+
 def render_capture(
     scenario: Scenario, capture: str, options: SynthOptions
 ) -> Iterator[tuple[str, RenderedView]]:
@@ -218,6 +225,13 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
         "before": capture("before"),
         "after": capture("after"),
         "changes": list(scenario.changes),
+        "camera_poses": {
+            name: {
+                view_name(i, options): pose.tolist()
+                for i, pose in enumerate(capture_path(scenario, name, options))
+            }
+            for name in CAPTURES
+        },
     }
 
 

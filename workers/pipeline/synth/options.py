@@ -91,7 +91,7 @@ class SynthOptions:
     room: RoomOptions = field(default_factory=RoomOptions)
     look: LookOptions = field(default_factory=LookOptions)
     detection: DetectionOptions = field(default_factory=DetectionOptions)
-    write_poses: bool = True
+    write_poses: bool = True  # true poses in cameras.json (ground_truth.json always has them)
     move_min_m: float = 0.2
 
 
@@ -99,8 +99,10 @@ PRESETS: dict[str, SynthOptions] = {
     "demo": SynthOptions(
         path=PathOptions(n_views=30),
         look=LookOptions(noise_sigma=1.5, jpeg_quality=92),
+        write_poses=False,
     ),
     "bench": SynthOptions(
+        write_poses=False,
         path=PathOptions(n_views=40),
         look=LookOptions(noise_sigma=2.0),
         detection=DetectionOptions(box_jitter_px=2.0, miss_rate=0.05, false_positive_rate=0.02),

@@ -125,13 +125,21 @@ def main() -> int:
     reference = json.loads((args.scene / "reference.json").read_text())
     options = options_from_preset(args.preset)
     results: dict[str, Any] = {"preset": args.preset, "scene": str(args.scene), "cases": {}}
-    before = args.scene / "before"
-    cams_raw = json.loads((before / "cameras.json").read_text())
+    gt = json.loads((args.scene / "ground_truth.json").read_text())
+
+    def true_cameras(capture: str) -> dict[str, Any]:
+        """cameras.json with the true poses (from ground_truth.json when not written there)."""
+        raw = dict(json.loads((args.scene / capture / "cameras.json").read_text()))
+        if "poses" not in raw:
+            raw["poses"] = gt["camera_poses"][capture]
+        return raw
+
+    cams_raw = true_cameras("before")
     meshes = load_true_surfaces(args.scene, "before")
     visible = visible_surface_samples(meshes, cams_raw)
 
     def run(name: str, capture: str, with_poses: bool, reference_cloud: Path | None) -> Path:
-        raw = json.loads((args.scene / capture / "cameras.json").read_text())
+        raw = true_cameras(capture)
         cams = parse_cameras(raw if with_poses else {"intrinsics": raw["intrinsics"]})
         work = args.work / name
         import shutil

@@ -295,7 +295,9 @@ def load_model(path: Path, name: str | None = None) -> ObjectModel:
         symmetry = {"kind": "continuous", "axis": [0.0, 0.0, 1.0], "point": centre}
     uvs = np.asarray(legacy.triangle_uvs, np.float64)
     if legacy.textures and len(uvs) == 3 * len(mesh.triangles):
-        image = np.asarray(legacy.textures[0])
+        # Open3D hands the texture back bottom-up; flip it to the file's top-down rows so
+        # that row = (1 − v)·height holds, as for the image read from disk.
+        image = np.asarray(legacy.textures[0])[::-1]
         if image.ndim == 2:
             image = np.repeat(image[:, :, None], 3, axis=2)
         return ObjectModel(

@@ -97,7 +97,8 @@ def main(argv: list[str] | None = None) -> int:
             q = snap["quality"]
             print(
                 f"     {q.get('images_registered')}/{q.get('images_total')} images, "
-                f"{q.get('points')} points, reprojection {q.get('mean_reprojection_error_px', 0):.2f} px, "
+                f"{q.get('points')} points, "
+                f"reprojection {q.get('mean_reprojection_error_px') or 0:.2f} px, "
                 f"marker residual {1000 * (q.get('marker_residual_m') or 0):.1f} mm, "
                 f"alignment residual {1000 * (q.get('alignment_residual_m') or 0):.1f} mm"
             )
@@ -118,7 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     matches, extra = match_changes(truth, comparison["changes"])
     print("\n5. changes found (ground truth on the right)")
     print(
-        f"   {'type':<9} {'object':<14} {'metric':>6}  {'truth':<22} {'Δt mm':>7} {'ΔR °':>6}  verified"
+        f"   {'type':<9} {'object':<14} {'metric':>6}  {'truth':<22} "
+        f"{'Δt mm':>7} {'ΔR °':>6}  verified"
     )
     for m in matches:
         f = m.found or {}
@@ -130,7 +132,8 @@ def main(argv: list[str] | None = None) -> int:
             else "      -"
         )
         dr = f"{m.rotation_error_deg:6.2f}" if m.rotation_error_deg is not None else "     -"
-        found = f"{f.get('type', 'MISSED'):<9} {f.get('object', '')!s:<14} {ident.get('metric', 0):6.2f}"
+        metric = ident.get("metric", 0)
+        found = f"{f.get('type', 'MISSED'):<9} {f.get('object', '')!s:<14} {metric:6.2f}"
         print(
             f"   {found}  {m.truth['type'] + ' ' + m.truth['object']:<22} {dt} {dr}  "
             f"{quality.get('verified', '-')}"

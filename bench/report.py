@@ -60,7 +60,8 @@ def _histogram_svg(side: str, stats: dict[str, Any], thresholds: dict[str, float
     span = width_m * len(counts)
     lines = "".join(
         f'<line x1="{min(t / span, 1) * w:.1f}" x2="{min(t / span, 1) * w:.1f}" y1="10" y2="{h}" '
-        f'stroke="{colour}" stroke-width="2"/><text x="{min(t / span, 1) * w + 3:.1f}" y="{22 + 12 * i}" '
+        f'stroke="{colour}" stroke-width="2"/>'
+        f'<text x="{min(t / span, 1) * w + 3:.1f}" y="{22 + 12 * i}" '
         f'font-size="10" fill="{colour}">{html.escape(name)} {t * 1000:.1f} mm</text>'
         for i, ((name, t), colour) in enumerate(
             zip(thresholds.items(), ["#999", "#777", "#c60", "#a00", "#0a0"], strict=False)
@@ -125,7 +126,8 @@ def write_report(
         )
         ident = found.get("identification") or {}
         parts.append(
-            f"<p>identification metric {ident.get('metric', 0):.2f} (IoU {ident.get('iou', 0):.2f}, "
+            f"<p>identification metric {ident.get('metric', 0):.2f} "
+            f"(IoU {ident.get('iou', 0):.2f}, "
             f"{ident.get('overlaps', 0)}/{ident.get('occurrences', 0)} images); {err}; "
             f"pose quality {html.escape(str(found.get('pose_quality')))[:300]}</p>"
         )

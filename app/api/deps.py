@@ -3,11 +3,12 @@ settings, storage, and API keys by scope."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from typing import Annotated
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from app.core import auth
 from app.core.auth import Principal
@@ -38,14 +39,22 @@ def _bearer(request: Request) -> str | None:
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
-def _require(scope: Scope):  # type: ignore[no-untyped-def]
-    def check(request: Request) -> Principal:
-        # A short read-only transaction of its own (only on a cache miss), so auth never
-        # holds the request's.
-        with get_session_factory()() as session:
-            return auth.authenticate(session, _bearer(request), scope)
+def _require(scope: Scope) -> Callable[[Request], Awaitable[Principal]]:
+    async def check(request: Request) -> Principal:
+        # Async, so a cached key costs no thread-pool hop; a cache miss runs one indexed
+        # lookup in a short session of its own, off the event loop.
+        token = _bearer(request)
+        principal = auth.cached(token, scope)
+        if principal is not None:
+            return principal
+        return await run_in_threadpool(_authenticate, token, scope)
 
     return check
+
+
+def _authenticate(token: str | None, scope: Scope) -> Principal:
+    with get_session_factory()() as session:
+        return auth.authenticate(session, token, scope)
 
 
 ReadKey = Annotated[Principal, Depends(_require(Scope.read))]

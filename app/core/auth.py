@@ -96,6 +96,17 @@ class _KeyCache:
 KEY_CACHE = _KeyCache(ttl_s=5.0)
 
 
+def cached(token: str | None, needed: Scope) -> Principal | None:
+    """The caller from the cache when the key is cached and holds ``needed``; None when the
+    database must be asked (which also raises the right 401/403)."""
+    if not token:
+        return None
+    principal = KEY_CACHE.get(hash_key(token))
+    if principal is None or needed not in effective_scopes(list(principal.scopes)):
+        return None
+    return principal
+
+
 def authenticate(session: Session, token: str | None, needed: Scope) -> Principal:
     """The caller for ``token`` if it holds scope ``needed``; 401 when the key is missing,
     unknown or revoked, 403 when it lacks the scope."""

@@ -29,6 +29,12 @@ class Placement:
     env_from_object: Mat4
     support: str = "floor"
 
+    def footprint_env(self) -> tuple[np.ndarray, float]:
+        """(centre xy (2,), radius) in metres of the model's footprint circle on its support."""
+        centre, radius = self.model.footprint
+        xy = self.env_from_object[:2, :2] @ centre + self.env_from_object[:2, 3]
+        return xy, radius
+
 
 @dataclass(frozen=True, eq=False)
 class StaticSurface:
@@ -91,9 +97,12 @@ def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
 
 
 def _rest_pose(model: ObjectModel, xy: np.ndarray, yaw_rad: float, support_z: float) -> Mat4:
-    """``env_from_object`` standing the model on z = ``support_z`` at ``xy``, turned by yaw."""
+    """``env_from_object`` standing the model on z = ``support_z``, turned by yaw about z,
+    with its footprint centre at ``xy``."""
+    rot = rot_z(yaw_rad)
+    origin_xy = xy - rot[:2, :2] @ model.footprint[0]
     z = support_z - float(model.mesh.vertices[:, 2].min())
-    return make_rigid(rot_z(yaw_rad), [float(xy[0]), float(xy[1]), z])
+    return make_rigid(rot, [float(origin_xy[0]), float(origin_xy[1]), z])
 
 
 class _Placer:
@@ -112,8 +121,8 @@ class _Placer:
         for other in others:
             if other.support != support:
                 continue
-            d = float(np.linalg.norm(other.env_from_object[:2, 3] - xy))
-            if d < r + other.model.footprint_radius_m() + self.margin:
+            other_xy, other_r = other.footprint_env()
+            if float(np.linalg.norm(other_xy - xy)) < r + other_r + self.margin:
                 return False
         (w, dpt, _), centre = self.room.table_size_m, np.asarray(self.room.table_centre_m)
         gap = np.abs(xy - centre) - np.asarray([w / 2, dpt / 2])
@@ -138,8 +147,9 @@ class _Placer:
         away_from: Placement | None = None,
         min_move_m: float = 0.0,
     ) -> Placement:
-        """A free pose for ``model``; near ``near_xy`` (swaps) or ≥ ``min_move_m`` away from
-        ``away_from`` (moves). Raises InputError when no free pose is found."""
+        """A free pose for ``model`` (``xy`` below is where its footprint centre goes); near
+        ``near_xy`` (swaps) or ≥ ``min_move_m`` away from ``away_from`` (moves). Raises
+        _NoRoom when no free pose is found."""
         supports = ["floor", "table"] if self.room.table else ["floor"]
         for attempt in range(400):
             support = supports[int(self.rng.integers(len(supports)))]
@@ -155,7 +165,7 @@ class _Placer:
                 angle = self.rng.uniform(0.0, 2.0 * np.pi)
                 xy = radius * np.asarray([np.cos(angle), np.sin(angle)])
             if near_xy is None and away_from is not None:
-                shift = float(np.linalg.norm(away_from.env_from_object[:2, 3] - xy))
+                shift = float(np.linalg.norm(away_from.footprint_env()[0] - xy))
                 if shift < min_move_m:
                     continue
             if not self._free(model, xy, support, others):
@@ -274,9 +284,7 @@ def _layout(
     elif scenario == "swapped":
         old = pick(None)
         others = [p for p in after if p is not old]
-        new = placer.place(
-            spare, next_id, others, near_xy=old.env_from_object[:2, 3], away_from=old
-        )
+        new = placer.place(spare, next_id, others, near_xy=old.footprint_env()[0], away_from=old)
         after[after.index(old)] = new
         changes.append(_change("swapped", new, old))
     elif scenario == "multiple":

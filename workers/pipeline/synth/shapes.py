@@ -7,6 +7,7 @@ are 15–40 cm: four without a proper rotational symmetry and one cylinder (a dr
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -209,9 +210,17 @@ class ObjectModel:
         out: F32 = (acc / np.maximum(count, 1)).astype(np.float32)
         return out
 
+    @cached_property
+    def footprint(self) -> tuple[F64, float]:
+        """(centre (2,), radius) in metres of a circle in the object's xy plane holding the
+        whole model seen from above (centre of the xy bounding box)."""
+        xy = self.mesh.vertices[:, :2]
+        centre: F64 = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
+        return centre, float(np.linalg.norm(xy - centre, axis=1).max())
+
     def footprint_radius_m(self) -> float:
-        """Radius about the object z axis that contains the model's xy extent."""
-        return float(np.linalg.norm(self.mesh.vertices[:, :2], axis=1).max())
+        """Radius of :attr:`footprint`."""
+        return self.footprint[1]
 
 
 def _sample_image(image: NDArray[np.uint8], st: F32) -> F32:

@@ -53,12 +53,14 @@ class Hit:
 @dataclass
 class Receiver:
     """An HTTP server in a thread. ``plan(path, [500, 500])`` makes the next answers on
-    ``path`` 500, 500, then 200; ``delay`` sleeps before answering."""
+    ``path`` 500, 500, then 200; ``delays`` sleep before answering; ``gate(path)`` holds
+    every answer on ``path`` until the returned event is set."""
 
     port: int = 0
     hits: list[Hit] = field(default_factory=list)
     plans: dict[str, list[int]] = field(default_factory=dict)
     delays: dict[str, list[float]] = field(default_factory=dict)
+    gates: dict[str, threading.Event] = field(default_factory=dict)
     lock: threading.Lock = field(default_factory=threading.Lock)
     server: ThreadingHTTPServer | None = None
 
@@ -82,6 +84,9 @@ class Receiver:
                     )
                     receiver.hits.append(hit)
                 time.sleep(delay)
+                gate = receiver.gates.get(self.path)
+                if gate is not None:
+                    gate.wait(30)
                 answer = json.dumps({"status": status, "pad": "x" * 3000}).encode()
                 self.send_response(status)
                 self.send_header("content-length", str(len(answer)))
@@ -101,6 +106,8 @@ class Receiver:
 
     def stop(self) -> None:
         if self.server is not None:
+            for gate in self.gates.values():
+                gate.set()
             self.server.shutdown()
             self.server.server_close()
             self.server = None
@@ -112,6 +119,10 @@ class Receiver:
         with self.lock:
             self.plans[path] = list(statuses)
             self.delays[path] = list(delays or [])
+
+    def gate(self, path: str) -> threading.Event:
+        gate = self.gates[path] = threading.Event()
+        return gate
 
     def on(self, path: str) -> list[Hit]:
         with self.lock:
@@ -473,8 +484,13 @@ def test_order_per_environment_and_other_environments_not_blocked(
 
 
 def test_dispatcher_sends_only_due_heads(
-    session_factory: sessionmaker[Session], sent_tasks: SentTasks, webhook_settings: None
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_RETRY_SCHEDULE_S", "[10]")  # due in 8 to 12 s
+    get_settings.cache_clear()
     env = make_env(session_factory)
     subscribe(session_factory, f"http://127.0.0.1:{free_port()}/hook")
     first, second = record(session_factory, env, 1), record(session_factory, env, 2)
@@ -488,10 +504,10 @@ def test_dispatcher_sends_only_due_heads(
     with db.transaction() as s:
         assert webhooks.dispatch_due(s, now) == []  # not due yet; d2 is not a head
     with db.transaction() as s:
-        assert webhooks.dispatch_due(s, now + timedelta(seconds=1)) == [d1]
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=13)) == [d1]
     with db.transaction() as s:  # already sent: not again until it seems lost
-        assert webhooks.dispatch_due(s, now + timedelta(seconds=2)) == []
-        assert webhooks.dispatch_due(s, now + timedelta(seconds=90)) == [d1]
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=14)) == []
+        assert webhooks.dispatch_due(s, now + timedelta(seconds=13 + 61)) == [d1]
     assert sent_tasks.calls == [("webhooks.deliver", {"delivery_id": d1})] * 2
 
 
@@ -540,7 +556,7 @@ def test_slow_receiver_does_not_block_another_subscription(
     env = make_env(session_factory)
     slow_sub, _ = subscribe(session_factory, receiver.url("/slow"))
     fast_sub, _ = subscribe(session_factory, receiver.url("/fast"))
-    receiver.plan("/slow", [200], delays=[1.0])
+    gate = receiver.gate("/slow")  # the slow receiver hangs until the gate opens
     record(session_factory, env)
     [slow] = deliveries(session_factory, subscription_id=slow_sub)
     [fast] = deliveries(session_factory, subscription_id=fast_sub)
@@ -550,10 +566,13 @@ def test_slow_receiver_does_not_block_another_subscription(
     assert claim is not None
     result: list[webhooks.Outcome] = []
     worker = threading.Thread(target=lambda: result.append(webhooks.send(claim, settings)))
-    started = time.monotonic()
     worker.start()  # one worker is stuck on the slow receiver, holding no session
-    assert deliver_once(fast.id) == "succeeded"
-    assert time.monotonic() - started < 0.8 and worker.is_alive()
+    deadline = time.monotonic() + 5
+    while not receiver.on("/slow") and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert deliver_once(fast.id) == "succeeded"  # another worker is not held up
+    assert worker.is_alive() and len(receiver.on("/fast")) == 1
+    gate.set()
     worker.join()
     with db.transaction() as s:
         assert webhooks.record_attempt(s, claim, result[0], settings) == "succeeded"

@@ -5,7 +5,7 @@ result, the twin's state and the ``comparison.completed`` event in one transacti
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -17,19 +17,14 @@ from app.core import comparisons, environments, events, jobs, objects, snapshots
 from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, JobState, ObjectState
 from app.core.models import Change, Job, SnapshotImage, utcnow
-from workers.pipeline.compare.data import Camera, CaptureData, TwinInstance
+from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.options import options_from_json
-from workers.pipeline.compare.results import Change as PipelineChange
 from workers.pipeline.compare.results import CompareResult
-from workers.pipeline.compare.stage import compare_snapshots, render_depth_maps
+from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import PipelineError
-from workers.pipeline.geometry import transform_points
-from workers.pipeline.model import PreparedModel, load_prepared
-from workers.pipeline.pose import SceneCloud, estimate_pose
-from workers.pipeline.verify import reprojection_check
+from workers.pipeline.model import load_prepared
+from workers.pipeline.posing import cameras_from_json, pose_changes
 from workers.runner import JobContext, run_job
-
-POSED_TYPES = {"added", "moved", "swapped"}
 
 
 @dataclass(frozen=True)
@@ -133,19 +128,9 @@ def _at(centroid: list[float] | None) -> list[list[float]]:
 def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
     cloud = o3d.io.read_point_cloud(ctx.storage.path(files.cloud_key))
     cameras_json = json.loads(ctx.storage.path(files.cameras_key).read_text())["images"]
-    cameras = tuple(
-        Camera(
-            name=name,
-            k=np.asarray(view["K"], dtype=np.float64),
-            width=int(view["width"]),
-            height=int(view["height"]),
-            cam_from_env=np.linalg.inv(np.asarray(view["env_from_cam"], dtype=np.float64)),
-        )
-        for name, view in sorted(cameras_json.items())
-    )
     return CaptureData(
         points_env=np.asarray(cloud.points, dtype=np.float64),
-        cameras=cameras,
+        cameras=cameras_from_json(cameras_json),
         detections={
             name: np.asarray(rows, dtype=np.float64).reshape(-1, 6)
             for name, rows in files.detections.items()
@@ -174,83 +159,19 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
         ctx.progress,
     )
     outcome = ComparisonOutcome(inputs=inputs, result=result)
-    posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in inputs.models]
-    scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
-    depth_maps = render_depth_maps(after, compare_options) if posed else None
-    prepared: dict[str, PreparedModel] = {}
-    for i, change in enumerate(result.changes):
-        ctx.progress("pose", i / max(len(result.changes), 1))
-        record = change.to_json()
-        record["centroid_env"] = change.cluster.centroid.tolist()
-        if change in posed and scene is not None:
-            name = str(change.object_name)
-            if name not in prepared:
-                prepared[name] = load_prepared(ctx.storage.path(inputs.models[name][2]))
-            record.update(
-                _pose(
-                    change,
-                    prepared[name],
-                    scene,
-                    after,
-                    inputs.classes.index(name),
-                    depth_maps,
-                    pose_options,
-                )
-            )
-        outcome.changes.append(record)
-    ctx.progress("pose", 1.0)
+    outcome.changes.extend(
+        pose_changes(
+            result,
+            after,
+            inputs.classes,
+            inputs.models,
+            lambda name: load_prepared(ctx.storage.path(inputs.models[name][2])),
+            compare_options,
+            pose_options,
+            ctx.progress,
+        )
+    )
     return outcome
-
-
-def _pose(
-    change: PipelineChange,
-    model: PreparedModel,
-    scene: SceneCloud,
-    after: CaptureData,
-    class_id: int,
-    depth_maps: Any,
-    pose_options: dict[str, Any],
-) -> dict[str, Any]:
-    """Pose, previous pose and quality of one change; a failed registration is reported on
-    the change (``verified: false`` with the reason), never dropped."""
-    from workers.pipeline.pose import POSE_PRESETS
-
-    options = POSE_PRESETS[str(pose_options.get("preset", "default"))]
-    try:
-        pose = estimate_pose(
-            model,
-            scene,
-            cluster_points_env=change.cluster.points_env,
-            previous_env_from_object=change.previous_env_from_object,
-            options=replace(options, **{k: v for k, v in pose_options.items() if k != "preset"}),
-        )
-    except PipelineError as exc:
-        return {
-            "pose": None,
-            "pose_quality": {"verified": False, "reasons": [f"{exc.code}: {exc.detail}"]},
-        }
-    check = reprojection_check(
-        model.points, pose.env_from_object, class_id, after.cameras, after.detections, depth_maps
-    )
-    quality = pose.quality_json()
-    reasons = list(pose.rejections)
-    if not check.passed:
-        reasons.append(
-            f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
-            "with the detector's boxes is too low"
-        )
-    quality.update(
-        verified=bool(pose.verified and check.passed),
-        reasons=reasons,
-        reprojection=check.to_json(),
-        chosen_by=pose.chosen_by,
-    )
-    centre = transform_points(pose.env_from_object, model.centre_object[None, :])[0]
-    return {
-        "pose": pose.env_from_object.tolist(),
-        "pose_quality": quality,
-        "centroid_env": centre.tolist(),
-    }
 
 
 def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> None:

@@ -1,0 +1,140 @@
+"""The pose step after a comparison: a 6-DoF pose for every identified object that appeared,
+each checked by re-projection into the after capture's detections.
+
+Shared by the comparison job (workers/comparison.py) and the benchmarks, so both pose the
+same way. Pure: prepared models come in through ``load_model``; nothing is read from
+storage here.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from workers.pipeline.compare.data import Camera, CaptureData
+from workers.pipeline.compare.options import CompareOptions
+from workers.pipeline.compare.results import Change, CompareResult
+from workers.pipeline.compare.stage import render_depth_maps
+from workers.pipeline.compare.visibility import DepthMap
+from workers.pipeline.errors import PipelineError
+from workers.pipeline.geometry import transform_points
+from workers.pipeline.model import PreparedModel
+from workers.pipeline.pose import POSE_PRESETS, SceneCloud, estimate_pose
+from workers.pipeline.verify import reprojection_check
+
+POSED_TYPES = frozenset({"added", "moved", "swapped"})
+Progress = Callable[[str, float], None]
+
+
+def cameras_from_json(images: Mapping[str, Mapping[str, Any]]) -> tuple[Camera, ...]:
+    """Cameras from a reconstruction's cameras.json ``{"images": {name: {"K", "width",
+    "height", "env_from_cam", ...}}}`` (pass the ``images`` mapping), sorted by name;
+    ``env_from_cam`` 4×4 metres, OpenCV axes."""
+    return tuple(
+        Camera(
+            name=name,
+            k=np.asarray(view["K"], dtype=np.float64),
+            width=int(view["width"]),
+            height=int(view["height"]),
+            cam_from_env=np.linalg.inv(np.asarray(view["env_from_cam"], dtype=np.float64)),
+        )
+        for name, view in sorted(images.items())
+    )
+
+
+def pose_change(
+    change: Change,
+    model: PreparedModel,
+    scene: SceneCloud,
+    after: CaptureData,
+    class_id: int,
+    depth_maps: Sequence[DepthMap] | None,
+    pose_options: Mapping[str, Any],
+) -> dict[str, Any]:
+    """Pose, quality and centre of one change; a failed registration is reported on the
+    change (``verified: false`` with the reason), never dropped. ``pose_options`` is the
+    job's ``{"preset": name, **overrides}`` for :class:`~workers.pipeline.pose.PoseOptions`.
+    """
+    options = POSE_PRESETS[str(pose_options.get("preset", "default"))]
+    try:
+        pose = estimate_pose(
+            model,
+            scene,
+            cluster_points_env=change.cluster.points_env,
+            previous_env_from_object=change.previous_env_from_object,
+            options=replace(options, **{k: v for k, v in pose_options.items() if k != "preset"}),
+        )
+    except PipelineError as exc:
+        return {
+            "pose": None,
+            "pose_quality": {"verified": False, "reasons": [f"{exc.code}: {exc.detail}"]},
+        }
+    check = reprojection_check(
+        model.points, pose.env_from_object, class_id, after.cameras, after.detections, depth_maps
+    )
+    quality = pose.quality_json()
+    reasons = list(pose.rejections)
+    if not check.passed:
+        reasons.append(
+            f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
+            "with the detector's boxes is too low"
+        )
+    quality.update(
+        verified=bool(pose.verified and check.passed),
+        reasons=reasons,
+        reprojection=check.to_json(),
+        chosen_by=pose.chosen_by,
+    )
+    centre = transform_points(pose.env_from_object, model.centre_object[None, :])[0]
+    return {
+        "pose": pose.env_from_object.tolist(),
+        "pose_quality": quality,
+        "centroid_env": centre.tolist(),
+    }
+
+
+def pose_changes(
+    result: CompareResult,
+    after: CaptureData,
+    classes: Sequence[str],
+    available: Collection[str],
+    load_model: Callable[[str], PreparedModel],
+    compare_options: CompareOptions,
+    pose_options: Mapping[str, Any] | None = None,
+    progress: Progress | None = None,
+) -> list[dict[str, Any]]:
+    """Every change of ``result`` as its contract JSON with ``centroid_env`` and, for added,
+    moved and swapped objects whose class is in ``available``, ``pose`` (4×4
+    env_from_object, metres) and ``pose_quality``. ``load_model(name)`` is called at most
+    once per class, only for classes that need a pose."""
+    report: Progress = progress or (lambda _stage, _fraction: None)
+    posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in available]
+    scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
+    depth_maps = render_depth_maps(after, compare_options) if posed else None
+    prepared: dict[str, PreparedModel] = {}
+    records: list[dict[str, Any]] = []
+    for i, change in enumerate(result.changes):
+        report("pose", i / max(len(result.changes), 1))
+        record = change.to_json()
+        record["centroid_env"] = change.cluster.centroid.tolist()
+        if change in posed and scene is not None:
+            name = str(change.object_name)
+            if name not in prepared:
+                prepared[name] = load_model(name)
+            record.update(
+                pose_change(
+                    change,
+                    prepared[name],
+                    scene,
+                    after,
+                    list(classes).index(name),
+                    depth_maps,
+                    pose_options or {},
+                )
+            )
+        records.append(record)
+    report("pose", 1.0)
+    return records

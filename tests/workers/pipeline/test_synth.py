@@ -19,15 +19,18 @@ from workers.pipeline.synth import (
     PRESETS,
     SCENARIOS,
     CameraOptions,
+    DetectionOptions,
     Scenario,
     build_scenario,
     builtin_models,
+    detect,
     generate,
     load_model,
     load_true_surfaces,
     render_capture,
     true_surfaces,
     visible_boxes,
+    yolo_lines,
 )
 from workers.pipeline.synth.cameras import camera_path, intrinsics_matrix
 from workers.pipeline.synth.cli import cli
@@ -245,6 +248,9 @@ def test_builtin_shapes_need_no_shared_data(tmp_path: Path) -> None:
     assert len(list((out / "after" / "images").glob("*.png"))) == 2
     assert "poses" not in json.loads((out / "after" / "cameras.json").read_text())
     assert len(json.loads((out / "ground_truth.json").read_text())["camera_poses"]["after"]) == 2
+    options = ["--preset", "tiny", "--views", "1", "--seed", "1"]
+    assert cli(["--scenario", "added", "--out", str(out), *options]) == 0
+    assert [p.name for p in (out / "after" / "labels").iterdir()] == ["view_000.txt"]
     assert sorted(p.stem for p in (out / "objects").glob("*.ply")) == sorted(m.name for m in models)
 
 
@@ -318,3 +324,43 @@ def test_symmetric_pose_error_forgives_turns_about_the_axis() -> None:
     assert r_err == pytest.approx(37.0, abs=1e-6) and t_err == pytest.approx(0.0, abs=1e-12)
     tilt = make_rigid(np.asarray([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), [0, 0, 0])
     assert symmetric_pose_error(true @ tilt, true, drum.symmetry)[1] == pytest.approx(90.0)
+
+
+def test_detection_corruption_options() -> None:
+    """Misses drop boxes, false positives add boxes of no instance, jitter stays in the image."""
+    instance = np.full((60, 80), -1, np.int32)
+    instance[10:30, 5:25] = 0
+    instance[40:55, 50:78] = 1
+    rng = np.random.default_rng(0)
+    clean = detect(instance, [2, 0], 3, DetectionOptions(min_visible_px=10), rng)
+    assert sorted((d.class_id, d.box_px) for d in clean) == [
+        (0, (50, 40, 78, 55)),
+        (2, (5, 10, 25, 30)),
+    ]
+    few = detect(instance, [2, 0], 3, DetectionOptions(min_visible_px=401), rng)
+    assert [d.instance for d in few] == [1]  # 20×20 = 400 px is too few, 28×15 = 420 is not
+    assert detect(instance, [2, 0], 3, DetectionOptions(miss_rate=1.0), rng) == []
+    noisy = detect(
+        instance, [2, 0], 3, DetectionOptions(false_positive_rate=1.0, box_jitter_px=3.0), rng
+    )
+    assert [d.instance for d in noisy].count(-1) == 1 and len(noisy) == 3
+    for d in noisy:
+        x0, y0, x1, y1 = d.box_px
+        assert 0 <= x0 < x1 <= 80 and 0 <= y0 < y1 <= 60
+    line = yolo_lines(clean[:1], 80, 60, confidence=False).split()
+    assert len(line) == 5 and float(line[3]) == pytest.approx(20 / 80)
+
+
+def test_bad_inputs_raise_input_errors(tmp_path: Path, moved: tuple[Path, Scenario]) -> None:
+    models = builtin_models()
+    with pytest.raises(InputError):
+        build_scenario("added", models[:1], 0, TINY)
+    with pytest.raises(InputError):
+        moved[1].capture("during")
+    with pytest.raises(InputError):
+        load_model(tmp_path / "missing.ply")
+    with pytest.raises(InputError):
+        load_true_surfaces(tmp_path, "before")
+    # a model file written by the generator loads back as a vertex-coloured model
+    crate = load_model(moved[0] / "objects" / "crate.ply")
+    assert crate.name == "crate" and crate.vertex_colours is not None

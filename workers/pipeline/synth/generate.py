@@ -189,6 +189,15 @@ def write_capture(
     if options.write_poses:
         cameras["poses"] = poses
     (root / "cameras.json").write_text(json.dumps(cameras, indent=1))
+    _remove_stale(root / "images", set(poses))
+    _remove_stale(root / "labels", {Path(name).stem + ".txt" for name in poses})
+
+
+def _remove_stale(folder: Path, keep: set[str]) -> None:
+    """Delete files of an earlier run in ``folder`` that this run did not write."""
+    for path in folder.iterdir():
+        if path.is_file() and path.name not in keep:
+            path.unlink()
 
 
 def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:

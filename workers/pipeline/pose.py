@@ -60,7 +60,8 @@ class PoseOptions:
     (``diameter / voxel_divisor``) unless named ``_m``.
 
     Verification: ``verified`` needs ``fitness ≥ min_fitness`` (model points within
-    ``inlier_voxels·v`` of the scene; a single view sees 30–60 % of an object),
+    ``inlier_voxels·v`` of the scene, at most ``max_inlier_distance_m`` — the scan's noise,
+    not the object's size, bounds a real inlier; a single view sees 30–60 % of an object),
     ``inlier_rmse ≤ max_rmse_voxels·v`` and, when cluster points are given,
     ``cluster_coverage ≥ min_cluster_coverage`` (the share of cluster points within
     ``coverage_voxels·v`` of the posed model: the change must be explained by the object), and no *distinct* candidate (modulo
@@ -85,6 +86,7 @@ class PoseOptions:
     icp_max_iterations: int = 20
     colored_icp: bool = True
     inlier_voxels: float = 0.5
+    max_inlier_distance_m: float = 0.01
     min_fitness: float = 0.25
     max_rmse_voxels: float = 0.3
     coverage_voxels: float = 0.5
@@ -227,21 +229,34 @@ def symmetric_pose_error(
     """(metres, degrees) pose error minimised over the symmetry group: the equivalent pose
     with the smallest rotation error, and its translation error measured at
     ``point_object`` ((3,), object frame; default the symmetry origin for continuous
-    symmetry, else the object origin). Continuous symmetry is sampled every 0.1°."""
+    symmetry, else the object origin). Continuous symmetry is solved in closed form."""
     est = as_mat4(estimated_env_from_object, "estimated")
     true = as_mat4(true_env_from_object, "true")
     if point_object is None:
         point = symmetry.origin if symmetry.kind == "continuous" and symmetry.origin is not None else np.zeros(3)
     else:
         point = np.asarray(point_object, dtype=np.float64).reshape(3)
-    elements = np.stack(symmetry.sample(3600) if symmetry.kind == "continuous" else list(symmetry.rotations))
-    cand = est @ elements  # (K, 4, 4)
+    if symmetry.kind == "continuous" and symmetry.axis is not None:
+        # trace(R_true^T R_est R_axis(θ) R_d) = A + B cos θ + C sin θ: maximise in closed form
+        ax = symmetry.axis
+        k = np.array([[0.0, -ax[2], ax[1]], [ax[2], 0.0, -ax[0]], [-ax[1], ax[0], 0.0]])
+        elements = []
+        for d in symmetry.rotations:
+            m = d[:3, :3] @ true[:3, :3].T @ est[:3, :3]
+            a_ = float(ax @ m @ ax)
+            b_ = float(np.trace(m)) - a_
+            c_ = float(np.trace(m @ k))
+            elements.append(symmetry.continuous_rotation(float(np.arctan2(c_, b_))) @ d)
+        stack = np.stack(elements)
+    else:
+        stack = np.stack(list(symmetry.rotations))
+    cand = est @ stack  # (K, 4, 4)
     rel = np.einsum("ji,kjl->kil", true[:3, :3], cand[:, :3, :3])  # R_true^T R_k
     cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    k = int(np.argmax(cos))
-    p_est = cand[k, :3, :3] @ point + cand[k, :3, 3]
+    best = int(np.argmax(cos))
+    p_est = cand[best, :3, :3] @ point + cand[best, :3, 3]
     p_true = true[:3, :3] @ point + true[:3, 3]
-    return float(np.linalg.norm(p_est - p_true)), float(np.degrees(np.arccos(cos[k])))
+    return float(np.linalg.norm(p_est - p_true)), float(np.degrees(np.arccos(cos[best])))
 
 
 def _normalised(a: Points) -> Points:
@@ -283,17 +298,21 @@ def _skew_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
 
 
-def _icp(src: Points, target: _Target, init: Mat4, dist: float, iters: int) -> Mat4:
+def _icp(
+    src: Points, src_normals: Points, target: _Target, init: Mat4, dist: float, iters: int
+) -> Mat4:
     """Point-to-plane ICP of (N, 3) object points onto ``target``; returns env_from_object.
 
-    Gauss-Newton on the linearised point-to-plane residual, pairs farther than ``dist``
-    ignored; stops when the update is below 1e-5 rad and 1e-4 ``dist``.
+    Gauss-Newton on the linearised point-to-plane residual; pairs farther than ``dist`` or
+    whose normals differ by more than 60° are ignored (a can's hidden bottom must not pair
+    with the table under it). Stops when the update is below 1e-5 rad and 1e-4 ``dist``.
     """
     pose = init.copy()
     for _ in range(iters):
         p = src @ pose[:3, :3].T + pose[:3, 3]
         d, idx = target.tree.query(p, distance_upper_bound=dist)
         ok = np.isfinite(d)
+        ok[ok] &= np.einsum("ij,ij->i", src_normals[ok] @ pose[:3, :3].T, target.normals[idx[ok]]) > 0.5
         if ok.sum() < 6:
             break
         p, q, n = p[ok], target.points[idx[ok]], target.normals[idx[ok]]
@@ -447,8 +466,8 @@ def estimate_pose(
     trials: list[Trial] = []
 
     def polish(init: Mat4, source: str, t_begin: float) -> None:
-        t = _icp(model.down_points, target_down, init, o.icp_scales_voxels[0] * v, 10)
-        t = _icp(model.down_points, target_fine, t, o.icp_scales_voxels[1] * v, 10)
+        t = _icp(model.down_points, model.down_normals, target_down, init, o.icp_scales_voxels[0] * v, 10)
+        t = _icp(model.down_points, model.down_normals, target_fine, t, o.icp_scales_voxels[1] * v, 10)
         pts = transform_points(t, model.down_points)
         ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
         trials.append(
@@ -511,17 +530,18 @@ def estimate_pose(
     model_mid = model_full.voxel_down_sample(v / 2)
     tau_fine = o.fine_score_voxels * v
     mid_points = np.asarray(model_mid.points)
+    mid_normals = _normalised(np.asarray(model_mid.normals))
     refined: list[tuple[float, Mat4, Trial]] = []
     for t in distinct[: o.n_refine]:
         pose = t.env_from_object
         for scale in o.icp_scales_voxels:
-            pose = _icp(mid_points, target_fine, pose, scale * v, o.icp_max_iterations)
+            pose = _icp(mid_points, mid_normals, target_fine, pose, scale * v, o.icp_max_iterations)
         score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
         refined.append((score, pose, t))
     refined.sort(key=lambda r: -r[0])
     best_fine, env_from_object, best = refined[0]
     env_from_object = _icp(
-        model.points, target_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
+        model.points, model.normals, target_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
     )
     runner_up = next(
         (
@@ -531,7 +551,7 @@ def estimate_pose(
         ),
         0.0,
     )
-    dist_in = o.inlier_voxels * v
+    dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
     ev = REG.evaluate_registration(model_full, scene_fine, dist_in, env_from_object)
     if o.colored_icp and model.colors is not None and scene_fine.has_colors():
         try:
@@ -557,13 +577,14 @@ def estimate_pose(
     coverage: float | None = None
     if cluster is not None:
         posed = cKDTree(transform_points(env_from_object, model.points))
-        d, _ = posed.query(cluster, distance_upper_bound=o.coverage_voxels * v)
+        d, _ = posed.query(cluster, distance_upper_bound=min(o.coverage_voxels * v, o.max_inlier_distance_m))
         coverage = float(np.isfinite(d).mean())
     rejections = []
     if fitness < o.min_fitness:
         rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
-    if rmse > o.max_rmse_voxels * v or fitness == 0.0:
-        rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {o.max_rmse_voxels * v * 1000:.1f} mm")
+    max_rmse = min(o.max_rmse_voxels * v, 0.6 * o.max_inlier_distance_m)
+    if rmse > max_rmse or fitness == 0.0:
+        rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {max_rmse * 1000:.1f} mm")
     if runner_up > o.max_runner_up_ratio * best_fine:
         rejections.append(
             f"a distinct pose scores {runner_up / best_fine:.2f} of the best (> {o.max_runner_up_ratio})"

@@ -1,0 +1,299 @@
+"""Pose estimation: oracles with known poses, symmetry handling, verification, real data.
+
+Tolerances. Synthetic scenes are partial views (hidden-point removal) of an independent
+dense surface sample of the YCB mesh with 1 mm Gaussian noise; the registration uses a
+6000-point model sample (about 2.5 mm spacing). Measured errors are about 1 mm and
+0.2-0.7°, so the tests assert 5 mm and 2° (the issue's per-object target): tight enough to
+catch a wrong or unrefined pose (a RANSAC-only pose is off by about one voxel, 9 mm).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from workers.pipeline.__main__ import main as pipeline_main
+from workers.pipeline.errors import InputError, RegistrationError, ShapeError
+from workers.pipeline.geometry import invert_rigid, make_rigid, pose_error, transform_points
+from workers.pipeline.model import ModelOptions, PreparedModel, load_surface, prepare_model
+from workers.pipeline.pose import (
+    POSE_PRESETS,
+    PoseOptions,
+    SceneCloud,
+    estimate_pose,
+    random_rigid,
+    symmetric_pose_error,
+)
+from workers.pipeline.symmetry import axis_angle_matrix
+
+UP = np.array([0.0, 0.0, 1.0])
+
+
+@pytest.fixture(scope="module")
+def ycb_models(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, PreparedModel]:
+    work = tmp_path_factory.mktemp("models")
+    names = ("power_drill", "master_chef_can", "wood_block", "bowl")
+    return {n: prepare_model(shared_data / "ycb" / n / "textured.obj", work / n) for n in names}
+
+
+def partial_view(
+    mesh: Path,
+    env_from_object: np.ndarray,
+    seed: int,
+    n_views: int = 1,
+    table: bool = True,
+    camera_dirs: list[np.ndarray] | None = None,
+) -> tuple[SceneCloud, np.ndarray]:
+    """A synthetic scan: visible part of a dense sample, 1 mm noise, a table 2 mm below.
+
+    Returns the scene (env frame) and the object's scanned points (env frame)."""
+    rng = np.random.default_rng(seed)
+    pts, nrm, col = load_surface(mesh, ModelOptions(n_points=30000, sampling="uniform", seed=seed + 7))
+    centre = pts.mean(axis=0)
+    diam = float(np.linalg.norm(np.ptp(pts, axis=0)))
+    keep = np.zeros(len(pts), bool)
+    dirs = camera_dirs or [rng.normal(size=3) for _ in range(n_views)]
+    for d in dirs:
+        d = np.asarray(d, float) / np.linalg.norm(d)
+        # camera direction given in the env frame: bring it into the object frame
+        d_obj = env_from_object[:3, :3].T @ d
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        _, idx = cloud.hidden_point_removal(centre + 3 * diam * d_obj, 100 * diam)
+        keep[np.asarray(idx)] = True
+    obj = transform_points(env_from_object, pts[keep] + rng.normal(scale=0.001, size=(keep.sum(), 3)))
+    normals = nrm[keep] @ env_from_object[:3, :3].T
+    colors = None if col is None else col[keep]
+    scene_pts, scene_nrm, scene_col = obj, normals, colors
+    if table:
+        m = 3000
+        z = obj[:, 2].min() - 0.002
+        xy = obj[:, :2].mean(axis=0) + rng.uniform(-0.7 * diam, 0.7 * diam, size=(m, 2))
+        scene_pts = np.vstack([obj, np.column_stack([xy, np.full(m, z)])])
+        scene_nrm = np.vstack([normals, np.tile(UP, (m, 1))])
+        if colors is not None:
+            scene_col = np.vstack([colors, np.full((m, 3), 0.6)])
+    return SceneCloud.create(scene_pts, scene_nrm, scene_col), obj
+
+
+def upright(yaw_deg: float, xyz: tuple[float, float, float], flip: bool = False) -> np.ndarray:
+    r = axis_angle_matrix(UP, np.radians(yaw_deg))
+    if flip:
+        r = r @ axis_angle_matrix(np.array([1.0, 0.0, 0.0]), np.pi)
+    return make_rigid(r, xyz)
+
+
+# ---------------------------------------------------------------- geometry properties
+
+
+def test_invert_rigid_round_trip_and_symmetric_error_properties() -> None:
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        t = random_rigid(rng, 2.0)
+        assert np.allclose(invert_rigid(t) @ t, np.eye(4), atol=1e-12)
+        assert np.allclose(t @ invert_rigid(t), np.eye(4), atol=1e-12)
+        assert np.allclose(t[:3, :3] @ t[:3, :3].T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(t[:3, :3]) == pytest.approx(1.0)
+    from workers.pipeline.symmetry import SymmetrySpec, rotation_about
+
+    turn = rotation_about(UP, np.pi / 2, np.zeros(3))
+    spec = SymmetrySpec("discrete", (np.eye(4), turn, turn @ turn, turn @ turn @ turn))
+    t = random_rigid(rng, 1.0)
+    assert symmetric_pose_error(t @ turn, t, spec) == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert pose_error(t @ turn, t)[1] == pytest.approx(90.0)
+
+
+# ---------------------------------------------------------------- oracle: known poses
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_random_pose_is_recovered(shared_data: Path, ycb_models: dict[str, PreparedModel], seed: int) -> None:
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    true = random_rigid(np.random.default_rng(seed), 0.5)
+    scene, obj = partial_view(mesh, true, seed, n_views=2, table=False)
+    result = estimate_pose(ycb_models["power_drill"], scene, cluster_points_env=obj[::2])
+    dt, dr = pose_error(result.env_from_object, true)
+    assert dt < 0.005 and dr < 2.0, (dt, dr, result.trials)
+    assert result.verified, result.rejections
+    assert not result.ambiguous and result.equivalent_poses == ()
+    assert result.fitness > 0.3 and result.inlier_rmse_m < 0.003
+    assert result.env_from_object.dtype == np.float64 and result.env_from_object.shape == (4, 4)
+    ransac = [t for t in result.trials if t.source.startswith("ransac") and "+" not in t.source]
+    assert len(ransac) == POSE_PRESETS["default"].n_seeds
+
+
+def test_same_seed_same_pose(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> None:
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    true = random_rigid(np.random.default_rng(5), 0.5)
+    scene, obj = partial_view(mesh, true, 5, table=True)
+    a = estimate_pose(ycb_models["power_drill"], scene, cluster_points_env=obj)
+    b = estimate_pose(ycb_models["power_drill"], scene, cluster_points_env=obj)
+    assert np.array_equal(a.env_from_object, b.env_from_object)
+    assert [t.score for t in a.trials] == [t.score for t in b.trials]
+
+
+def test_previous_pose_is_an_extra_candidate(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> None:
+    # a moved object: ICP from the previous pose (3 cm, 10° away) finds it even when no
+    # RANSAC seed is run at all
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    true = random_rigid(np.random.default_rng(11), 0.5)
+    scene, obj = partial_view(mesh, true, 11, n_views=2)
+    previous = true @ make_rigid(axis_angle_matrix([1.0, 2.0, 0.5], np.radians(10)), [0.03, 0.0, 0.0])
+    options = replace(POSE_PRESETS["default"], n_seeds=0)
+    result = estimate_pose(
+        ycb_models["power_drill"], scene, cluster_points_env=obj, previous_env_from_object=previous, options=options
+    )
+    dt, dr = pose_error(result.env_from_object, true)
+    assert dt < 0.005 and dr < 2.0
+    assert result.source == "previous pose"
+
+
+# ---------------------------------------------------------------- symmetry
+
+
+@pytest.mark.parametrize(
+    ("name", "flip", "yaw"),
+    [
+        ("master_chef_can", False, 37.0),
+        ("master_chef_can", True, 200.0),  # physically upside down: the flip is a symmetry
+        ("wood_block", False, 123.0),
+        ("wood_block", True, 10.0),
+    ],
+)
+def test_symmetric_object_is_ambiguous_and_never_upside_down(
+    shared_data: Path, ycb_models: dict[str, PreparedModel], name: str, flip: bool, yaw: float
+) -> None:
+    model = ycb_models[name]
+    true = upright(yaw, (0.3, -0.2, 0.05), flip=flip)
+    scene, obj = partial_view(
+        shared_data / "ycb" / name / "textured.obj", true, 3, camera_dirs=[np.array([0.6, -0.3, 0.75])]
+    )
+    result = estimate_pose(model, scene, cluster_points_env=obj)
+    assert result.ambiguous and result.chosen_by == "up"
+    assert len(result.equivalent_poses) >= 1
+    up_in_env = result.env_from_object[:3, :3] @ model.up_object
+    assert up_in_env @ UP > 0.99  # upright within 8°, even when the true pose is flipped
+    dt, dr = symmetric_pose_error(result.env_from_object, true, model.symmetry, model.centre_object)
+    assert dt < 0.005 and dr < 2.0
+    for eq in result.equivalent_poses:  # every reported equivalent fits as well
+        e_t, e_r = symmetric_pose_error(eq, true, model.symmetry, model.centre_object)
+        assert e_t < 0.005 and e_r < 2.0
+
+
+def test_bowl_upside_down_is_reported_upside_down(
+    shared_data: Path, ycb_models: dict[str, PreparedModel]
+) -> None:
+    # a bowl has no flip symmetry: canonicalisation must not "correct" a real flip
+    model = ycb_models["bowl"]
+    true = upright(0.0, (0.0, 0.0, 0.1), flip=True)
+    scene, obj = partial_view(
+        shared_data / "ycb" / "bowl" / "textured.obj", true, 4, camera_dirs=[np.array([0.5, 0.2, 0.8])]
+    )
+    result = estimate_pose(model, scene, cluster_points_env=obj)
+    assert result.ambiguous
+    assert result.env_from_object[:3, :3] @ model.up_object @ UP < -0.99
+    dt, dr = symmetric_pose_error(result.env_from_object, true, model.symmetry)
+    assert dt < 0.005 and dr < 2.0
+
+
+def test_previous_pose_picks_the_nearest_equivalent(
+    shared_data: Path, ycb_models: dict[str, PreparedModel]
+) -> None:
+    model = ycb_models["wood_block"]
+    true = upright(20.0, (0.1, 0.1, 0.0))
+    scene, obj = partial_view(shared_data / "ycb" / "wood_block" / "textured.obj", true, 6, n_views=2)
+    quarter = model.symmetry.rotations[1]  # a 90° turn about the block's long axis
+    previous = true @ quarter
+    result = estimate_pose(model, scene, cluster_points_env=obj, previous_env_from_object=previous)
+    assert result.chosen_by == "previous"
+    dt, dr = pose_error(result.env_from_object, previous)
+    assert dt < 0.005 and dr < 2.0
+
+
+# ---------------------------------------------------------------- failures
+
+
+def test_inputs_are_checked(ycb_models: dict[str, PreparedModel]) -> None:
+    model = ycb_models["power_drill"]
+    scene = SceneCloud.create(np.random.default_rng(0).uniform(-1, 1, size=(500, 3)))
+    with pytest.raises(ShapeError):
+        SceneCloud.create(np.zeros((10, 2)))
+    with pytest.raises(ShapeError):
+        SceneCloud.create(np.zeros((10, 3)), normals=np.zeros((9, 3)))
+    with pytest.raises(InputError):
+        estimate_pose(model, scene)  # neither cluster nor centre
+    with pytest.raises(ShapeError):
+        estimate_pose(model, scene, cluster_points_env=np.zeros((5, 4)))
+    with pytest.raises(RegistrationError, match="scene points"):
+        estimate_pose(model, scene, centre_env=[10.0, 10.0, 10.0])
+
+
+# ---------------------------------------------------------------- real data
+
+
+@pytest.fixture(scope="module")
+def milk(shared_data: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[PreparedModel, SceneCloud]:
+    model = prepare_model(shared_data / "pcl" / "milk.pcd", tmp_path_factory.mktemp("milk"))
+    # a single Kinect frame: normals oriented towards its camera at the origin
+    scene = SceneCloud.from_file(shared_data / "pcl" / "milk_cartoon_all_small_clorox.pcd")
+    return model, scene
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_milk_carton_in_real_kinect_scene(milk: tuple[PreparedModel, SceneCloud], seed: int) -> None:
+    model, scene = milk
+    rng = np.random.default_rng(seed)
+    env_from_kinect = random_rigid(rng, 1.0)  # the true env_from_object (model pose = identity)
+    moved = SceneCloud.create(
+        transform_points(env_from_kinect, scene.points),
+        None if scene.normals is None else scene.normals @ env_from_kinect[:3, :3].T,
+        scene.colors,
+    )
+    # the cluster centre is known only roughly: 2 cm off the carton's centre
+    centre = transform_points(env_from_kinect, model.centre_object[None])[0] + rng.normal(scale=0.02, size=3)
+    result = estimate_pose(model, moved, centre_env=centre)
+    dt, dr = pose_error(result.env_from_object, env_from_kinect)
+    assert dt < 0.005 and dr < 2.0
+    assert result.verified, result.rejections
+
+
+def test_threedmatch_pair_is_right_or_not_verified(shared_data: Path, tmp_path: Path) -> None:
+    """33 % overlap between two real scans: a wrong pose must never be flagged verified."""
+    d = shared_data / "threedmatch_pair"
+    src, ref, ref_from_src = (np.load(d / f) for f in ("src.npy", "ref.npy", "gt.npy"))
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(src))
+    o3d.io.write_point_cloud(str(tmp_path / "src.ply"), cloud)
+    model = prepare_model(tmp_path / "src.ply", tmp_path / "model")
+    scene = SceneCloud.create(ref)
+    outcomes = []
+    for seed in range(3):
+        options = PoseOptions(seed=seed, crop_factor=1.5)
+        result = estimate_pose(model, scene, centre_env=ref.mean(axis=0), options=options)
+        dt, dr = pose_error(result.env_from_object, ref_from_src)
+        right = dt < 0.10 and dr < 5.0
+        outcomes.append((seed, round(dt, 3), round(dr, 2), result.verified, result.rejections))
+        assert right or not result.verified, outcomes
+
+
+def test_pose_cli(milk: tuple[PreparedModel, SceneCloud], shared_data: Path, tmp_path: Path) -> None:
+    model, _ = milk
+    work = tmp_path / "milk"
+    prepare_model(shared_data / "pcl" / "milk.pcd", work)
+    centre = ",".join(f"{x:.4f}" for x in model.centre_object)
+    scene = shared_data / "pcl" / "milk_cartoon_all_small_clorox.pcd"
+    out = tmp_path / "out.txt"
+    import contextlib
+    import io
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf):
+        code = pipeline_main(["pose", "--model", str(work), "--scene", str(scene), f"--center={centre}"])
+    assert code == 0
+    out.write_text(buf.getvalue())
+    pose = np.asarray(json.loads(buf.getvalue())["env_from_object"])
+    dt, dr = pose_error(pose, np.eye(4))
+    assert dt < 0.005 and dr < 2.0

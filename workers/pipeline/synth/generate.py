@@ -5,6 +5,15 @@ Layout under ``out_dir``::
     before/images/view_000.png   before/labels/view_000.txt   before/classes.txt
     before/cameras.json          after/... (same)             reference.json
     ground_truth.json            objects/<class>.ply
+
+``ground_truth.json``: ``scenario``, ``seed``, ``classes`` (as classes.txt), ``objects``
+({class: {"model": "objects/<class>.ply", "symmetry": spec or null}}, see symmetry.py),
+``room`` (RoomOptions, enough to rebuild the room meshes), ``reference`` (as
+reference.json), ``before`` / ``after`` ([{"instance_id", "object", "class_id",
+"env_from_object", "support"}]), ``changes`` ([{"type", "object", "instance_id", "pose",
+"previous_pose", "replaced_object", "replaced_instance_id"}], CONTRACT.md field meanings)
+and ``camera_poses`` ({capture: {image name: env_from_cam}}). Poses are 4×4 row-major
+lists, metres; cameras have OpenCV axes and pixel centres at integer coordinates.
 """
 
 from __future__ import annotations

@@ -37,6 +37,9 @@ class RenderedView:
 
 @dataclass(frozen=True, eq=False)
 class _Geometry:
+    """One mesh of the ray-casting scene: environment-frame copy, vertex normals (V, 3), and
+    what it is (a room surface or a placed object)."""
+
     mesh_env: Mesh
     normals_env: NDArray[np.float32]
     static: StaticSurface | None
@@ -44,12 +47,11 @@ class _Geometry:
     object_from_env: Mat4
 
 
-def _pixel_rays(
-    k: NDArray[np.float64], width: int, height: int, offset: tuple[float, float]
-) -> F32:
-    """(H, W, 3) camera-frame ray directions (z = 1) through pixel centres + ``offset``."""
-    u = np.arange(width, dtype=np.float64) + offset[0]
-    v = np.arange(height, dtype=np.float64) + offset[1]
+def _pixel_rays(k: NDArray[np.float64], width: int, height: int) -> F32:
+    """(H, W, 3) camera-frame ray directions (z = 1) through the pixel centres, which sit at
+    integer coordinates (OpenCV convention)."""
+    u = np.arange(width, dtype=np.float64)
+    v = np.arange(height, dtype=np.float64)
     x = (u - k[0, 2]) / k[0, 0]
     y = (v - k[1, 2]) / k[1, 1]
     out = np.empty((height, width, 3), np.float32)
@@ -79,7 +81,7 @@ class Renderer:
             self._add(surface.mesh, np.eye(4), surface, None)
         for placement in placements:
             self._add(placement.model.mesh, placement.env_from_object, None, placement)
-        self._rays_cam = _pixel_rays(k, camera.width, camera.height, (0.0, 0.0))
+        self._rays_cam = _pixel_rays(k, camera.width, camera.height)
         light = np.asarray(look.light_dir, np.float32)
         self._light = light / np.linalg.norm(light)
         self._focal = np.float32(k[0, 0])

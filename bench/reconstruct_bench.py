@@ -73,7 +73,7 @@ def cloud_metrics(
     cloud: np.ndarray,
     meshes: dict[str, o3d.geometry.TriangleMesh],
     visible: np.ndarray,
-    work_radius_m: float,
+    work_radius_m: float = 1.5,
 ) -> dict[str, float]:
     """Distances of the cloud to the true surface; completeness over the visible surface,
     all of it and within the working area (horizontal radius ≤ work_radius_m, inside the

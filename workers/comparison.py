@@ -24,6 +24,7 @@ from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.model import load_prepared
 from workers.pipeline.posing import cameras_from_json, pose_changes
+from workers.progress import weighted
 from workers.runner import JobContext, run_job
 
 
@@ -142,7 +143,8 @@ def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
 
 def _compute(ctx: JobContext) -> ComparisonOutcome:
     inputs = _load(ctx)
-    ctx.progress("load", 0.0)
+    progress = weighted(ctx.progress, {"load": 1, "compare": 6, "pose": 3})
+    progress("load", 0.0)
     before = _capture_data(ctx, inputs.before)
     after = _capture_data(ctx, inputs.after)
     options = dict(inputs.options)
@@ -156,7 +158,7 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
         inputs.classes,
         {name: diameter for name, (_, diameter, _) in inputs.models.items()},
         compare_options,
-        ctx.progress,
+        progress,
     )
     outcome = ComparisonOutcome(inputs=inputs, result=result)
     outcome.changes.extend(
@@ -168,7 +170,7 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
             lambda name: load_prepared(ctx.storage.path(inputs.models[name][2])),
             compare_options,
             pose_options,
-            ctx.progress,
+            progress,
         )
     )
     return outcome

@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable, Mapping
 
 from app.core import jobs
 from app.core.db import transaction
@@ -66,3 +67,32 @@ class ProgressReporter:
     def __exit__(self, *_exc: object) -> None:
         self._done.set()
         self._thread.join(timeout=5)
+
+
+Progress = Callable[[str, float], None]
+
+
+def weighted(progress: Progress, weights: Mapping[str, float]) -> Progress:
+    """Turn a stage's own 0..1 fraction into the job's overall 0..1 progress.
+
+    Stages cover consecutive spans in the order of ``weights`` (normalised to sum 1); a
+    stage named ``a.b`` counts as ``a`` when only ``a`` is listed. Unknown stages keep the
+    overall figure, and it never goes backwards. The stage name is passed on unchanged.
+    """
+    total = sum(weights.values()) or 1.0
+    starts: dict[str, float] = {}
+    acc = 0.0
+    for name, weight in weights.items():
+        starts[name] = acc / total
+        acc += weight
+    overall = 0.0
+
+    def report(stage: str, fraction: float) -> None:
+        nonlocal overall
+        key = stage if stage in weights else stage.split(".", 1)[0]
+        if key in weights:
+            span = weights[key] / total
+            overall = max(overall, starts[key] + span * min(max(fraction, 0.0), 1.0))
+        progress(stage, overall)
+
+    return report

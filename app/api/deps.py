@@ -12,15 +12,18 @@ from starlette.concurrency import run_in_threadpool
 
 from app.core import auth
 from app.core.auth import Principal
-from app.core.db import get_session_factory
+from app.core.db import get_read_session_factory, get_session_factory
 from app.core.enums import Scope
 from app.core.settings import Settings, get_settings
 from app.core.storage import LocalStorage
 
 
-def get_session() -> Iterator[Session]:
-    """One transaction per request: committed when the route returns, rolled back on error."""
-    with get_session_factory().begin() as session:
+def get_session(request: Request) -> Iterator[Session]:
+    """One transaction per request: committed when the route returns, rolled back on error.
+    GET and HEAD requests get a read-only transaction."""
+    read_only = request.method in {"GET", "HEAD"}
+    factory = get_read_session_factory() if read_only else get_session_factory()
+    with factory.begin() as session:
         yield session
 
 
@@ -53,7 +56,7 @@ def _require(scope: Scope) -> Callable[[Request], Awaitable[Principal]]:
 
 
 def _authenticate(token: str | None, scope: Scope) -> Principal:
-    with get_session_factory()() as session:
+    with get_read_session_factory()() as session:
         return auth.authenticate(session, token, scope)
 
 

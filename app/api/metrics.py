@@ -20,7 +20,7 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.core.db import get_session_factory
+from app.core.db import get_read_session_factory
 from app.core.models import Job
 
 REGISTRY = CollectorRegistry()
@@ -49,7 +49,7 @@ class JobCollector(Collector):
         durations = SummaryMetricFamily(
             "twindelta_job_duration_seconds", "Run time of finished jobs", labels=["kind"]
         )
-        with get_session_factory().begin() as session:
+        with get_read_session_factory().begin() as session:
             for kind_name, state, n in session.execute(
                 select(Job.kind, Job.state, func.count()).group_by(Job.kind, Job.state)
             ):

@@ -18,6 +18,9 @@ class Base(DeclarativeBase):
     pass
 
 
+READ_ONLY = "twindelta_read_only"
+
+
 def make_engine(url: str) -> Engine:
     """An engine for ``url``; SQLite gets WAL, foreign keys and a busy timeout so the API
     and the worker processes can share the file."""
@@ -38,7 +41,12 @@ def make_engine(url: str) -> Engine:
 
         @event.listens_for(engine, "begin")
         def _sqlite_begin(conn: Any) -> None:
-            conn.exec_driver_sql("BEGIN")
+            # Writers take the write lock up front (BEGIN IMMEDIATE waits on busy_timeout);
+            # a deferred transaction that reads and then writes can instead fail at once
+            # when another process wrote in between. Readers stay deferred, so polling
+            # never waits on a writer (WAL).
+            read_only = conn.get_execution_options().get(READ_ONLY, False)
+            conn.exec_driver_sql("BEGIN" if read_only else "BEGIN IMMEDIATE")
 
         return engine
     return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
@@ -50,21 +58,37 @@ def get_engine() -> Engine:
 
 
 _session_factory: sessionmaker[Session] | None = None
+_read_session_factory: sessionmaker[Session] | None = None
+_override: sessionmaker[Session] | None = None
 
 
 def get_session_factory() -> sessionmaker[Session]:
-    """The process's session factory, bound to the settings' database on first use."""
+    """The process's session factory for transactions that may write."""
     global _session_factory
+    if _override is not None:
+        return _override
     if _session_factory is None:
         _session_factory = sessionmaker(bind=get_engine(), expire_on_commit=False)
     return _session_factory
 
 
+def get_read_session_factory() -> sessionmaker[Session]:
+    """A factory for read-only transactions (GET requests): on SQLite they never take the
+    write lock; elsewhere it is the same as :func:`get_session_factory`."""
+    global _read_session_factory
+    if _override is not None:
+        return _override
+    if _read_session_factory is None:
+        engine = get_engine().execution_options(**{READ_ONLY: True})
+        _read_session_factory = sessionmaker(bind=engine, expire_on_commit=False)
+    return _read_session_factory
+
+
 def use_session_factory(factory: sessionmaker[Session] | None) -> None:
-    """Bind the process to another factory (an embedding program, or a test's connection);
-    None goes back to the settings' database."""
-    global _session_factory
-    _session_factory = factory
+    """Bind the process to another factory for reads and writes (an embedding program, or a
+    test's connection); None goes back to the settings' database."""
+    global _override
+    _override = factory
 
 
 @contextmanager

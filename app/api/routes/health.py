@@ -7,7 +7,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from app.api.deps import SettingsDep, StorageDep
-from app.core.db import get_session_factory
+from app.core.db import get_read_session_factory
 
 router = APIRouter(tags=["health"])
 
@@ -23,7 +23,7 @@ def readyz(settings: SettingsDep, storage: StorageDep) -> dict[str, object] | JS
     """The database answers and storage is writable; 503 otherwise."""
     checks: dict[str, str] = {}
     try:
-        with get_session_factory().begin() as session:
+        with get_read_session_factory().begin() as session:
             session.execute(text("SELECT 1"))
         checks["database"] = "ok"
     except Exception as exc:

@@ -9,7 +9,7 @@ from app.api.deps import CaptureKey, ReadKey, SessionDep
 from app.api.schemas.common import ERRORS
 from app.api.schemas.jobs import JobRead
 from app.core import jobs
-from app.core.db import get_session_factory
+from app.core.db import get_read_session_factory
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERRORS)
 
@@ -23,7 +23,7 @@ async def get_job(job_id: str, _key: ReadKey) -> JobRead:
 
 
 def _read_job(job_id: str) -> JobRead:
-    with get_session_factory().begin() as session:
+    with get_read_session_factory().begin() as session:
         return JobRead.of(jobs.get(session, job_id))
 
 

@@ -4,6 +4,7 @@ target metadata from app.core.models; SQLite runs in batch mode so ALTERs work t
 from __future__ import annotations
 
 from alembic import context
+
 from app.core import models  # noqa: F401  (registers every table on Base.metadata)
 from app.core.db import Base, make_engine
 from app.core.settings import get_settings

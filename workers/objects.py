@@ -21,7 +21,6 @@ def process(job_id: str) -> str:
     return run_job(job_id, _compute, _persist, on_failure)
 
 
-
 def artifacts_key(object_id: str) -> str:
     return f"objects/{object_id}/prepared"
 

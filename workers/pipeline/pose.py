@@ -44,7 +44,6 @@ from workers.pipeline.geometry import (
     as_points,
     invert_rigid,
     make_rigid,
-    pose_error,
     rotation_angle_deg,
     transform_points,
 )
@@ -64,15 +63,15 @@ class PoseOptions:
     not the object's size, bounds a real inlier; a single view sees 30–60 % of an object),
     ``inlier_rmse ≤ max_rmse_voxels·v`` and, when cluster points are given,
     ``cluster_coverage ≥ min_cluster_coverage`` (the share of cluster points within
-    ``coverage_voxels·v`` of the posed model: the change must be explained by the object), and no *distinct* candidate (modulo
-    symmetry) scoring above ``max_runner_up_ratio`` × the best: two different poses that
-    explain the data about equally well (a wall sliding along a wall) are not a verified
-    pose.
+    ``coverage_voxels·v`` of the posed model: the change must be explained by the object),
+    and no *distinct* candidate (modulo symmetry) scoring above ``max_runner_up_ratio`` ×
+    the best: two different poses that explain the data about equally well (a wall sliding
+    along a wall) are not a verified pose.
     """
 
     crop_factor: float = 0.7
-    n_seeds: int = 5
-    ransac_max_iterations: int = 30000
+    n_seeds: int = 5  # per round; up to max_rounds rounds while the pose is not verified
+    ransac_max_iterations: int = 20000
     ransac_confidence: float = 0.999
     ransac_distance_voxels: float = 1.5
     mutual_filter: bool = False
@@ -81,6 +80,7 @@ class PoseOptions:
     score_voxels: float = 0.5
     n_refine: int = 3
     n_flip_bases: int = 2
+    max_rounds: int = 2
     fine_score_voxels: float = 0.3
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
     icp_max_iterations: int = 20
@@ -97,8 +97,8 @@ class PoseOptions:
 
 POSE_PRESETS: dict[str, PoseOptions] = {
     "default": PoseOptions(),
-    "fast": PoseOptions(n_seeds=3, ransac_max_iterations=10000),
-    "thorough": PoseOptions(n_seeds=10, ransac_max_iterations=100000),
+    "fast": PoseOptions(n_seeds=3, ransac_max_iterations=10000, max_rounds=1),
+    "thorough": PoseOptions(n_seeds=8, ransac_max_iterations=100000, max_rounds=4),
 }
 
 
@@ -132,7 +132,7 @@ class SceneCloud:
     def from_file(cls, path: Path, viewpoint_env: ArrayLike | None = None) -> SceneCloud:
         """Read a cloud file; without normals, estimate them and orient them towards
         ``viewpoint_env`` (default the origin, the camera of a single depth frame)."""
-        pcd = o3d.io.read_point_cloud(str(path)).remove_non_finite_points()
+        pcd = o3d.io.read_point_cloud(Path(path)).remove_non_finite_points()
         if len(pcd.points) == 0:
             raise InputError(f"{Path(path).name}: no finite points could be read")
         if not pcd.has_normals():
@@ -233,7 +233,11 @@ def symmetric_pose_error(
     est = as_mat4(estimated_env_from_object, "estimated")
     true = as_mat4(true_env_from_object, "true")
     if point_object is None:
-        point = symmetry.origin if symmetry.kind == "continuous" and symmetry.origin is not None else np.zeros(3)
+        point = (
+            symmetry.origin
+            if symmetry.kind == "continuous" and symmetry.origin is not None
+            else np.zeros(3)
+        )
     else:
         point = np.asarray(point_object, dtype=np.float64).reshape(3)
     if symmetry.kind == "continuous" and symmetry.axis is not None:
@@ -260,7 +264,8 @@ def symmetric_pose_error(
 
 
 def _normalised(a: Points) -> Points:
-    return a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    out: Points = a / np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-12)
+    return out
 
 
 def _crop(
@@ -295,7 +300,8 @@ def _skew_exp(w: NDArray[np.float64]) -> NDArray[np.float64]:
         return np.eye(3)
     k = w / angle
     kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
+    out: NDArray[np.float64] = np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
+    return out
 
 
 def _icp(
@@ -312,7 +318,9 @@ def _icp(
         p = src @ pose[:3, :3].T + pose[:3, 3]
         d, idx = target.tree.query(p, distance_upper_bound=dist)
         ok = np.isfinite(d)
-        ok[ok] &= np.einsum("ij,ij->i", src_normals[ok] @ pose[:3, :3].T, target.normals[idx[ok]]) > 0.5
+        ok[ok] &= (
+            np.einsum("ij,ij->i", src_normals[ok] @ pose[:3, :3].T, target.normals[idx[ok]]) > 0.5
+        )
         if ok.sum() < 6:
             break
         p, q, n = p[ok], target.points[idx[ok]], target.normals[idx[ok]]
@@ -362,13 +370,8 @@ def _canonical(
         best = int(np.argmax(np.where(near, closeness, -np.inf)))
         chosen_by = "up"
     chosen = grid[best]
-    if symmetry.kind == "continuous":
-        samples = symmetry.sample(8)
-    else:
-        samples = list(symmetry.rotations)
-    equivalents = [
-        chosen @ s for s in samples if rotation_angle_deg(s[:3, :3]) > 1e-3
-    ]
+    samples = symmetry.sample(8) if symmetry.kind == "continuous" else list(symmetry.rotations)
+    equivalents = [chosen @ s for s in samples if rotation_angle_deg(s[:3, :3]) > 1e-3]
     return chosen, chosen_by, equivalents
 
 
@@ -399,7 +402,9 @@ def estimate_pose(
     timings: dict[str, float] = {}
     if not isinstance(scene, SceneCloud):
         raise ShapeError("scene must be a SceneCloud (use SceneCloud.create)")
-    cluster = None if cluster_points_env is None else as_points(cluster_points_env, "cluster points")
+    cluster = (
+        None if cluster_points_env is None else as_points(cluster_points_env, "cluster points")
+    )
     if cluster is not None and len(cluster) == 0:
         cluster = None
     if cluster is not None:
@@ -410,12 +415,16 @@ def estimate_pose(
             raise ShapeError(f"centre_env must be a finite (3,), got {centre.shape}")
     else:
         raise InputError("estimate_pose needs cluster_points_env or centre_env")
-    previous = None if previous_env_from_object is None else as_mat4(previous_env_from_object, "previous")
+    previous = (
+        None if previous_env_from_object is None else as_mat4(previous_env_from_object, "previous")
+    )
     up = np.asarray(up_env, dtype=np.float64).reshape(-1)
     if up.shape != (3,) or np.linalg.norm(up) == 0:
         raise ShapeError("up_env must be a non-zero (3,) vector")
     up = up / np.linalg.norm(up)
     o = options
+    if o.max_rounds < 1 or o.n_seeds < 0:
+        raise InputError("PoseOptions needs max_rounds ≥ 1 and n_seeds ≥ 0")
     v = model.voxel_m
     diam = model.diameter_m
 
@@ -438,12 +447,17 @@ def estimate_pose(
         scene_full.normals = o3d.utility.Vector3dVector(nrm)
     scene_down = scene_full.voxel_down_sample(v)
     scene_down.normals = o3d.utility.Vector3dVector(_normalised(np.asarray(scene_down.normals)))
-    scene_fine = scene_full.voxel_down_sample(v / 4) if len(c_pts) > 4 * len(model.points) else scene_full
+    scene_fine = (
+        scene_full.voxel_down_sample(v / 4) if len(c_pts) > 4 * len(model.points) else scene_full
+    )
     if scene_fine.has_normals():
         scene_fine.normals = o3d.utility.Vector3dVector(_normalised(np.asarray(scene_fine.normals)))
     n_opts = model.summary.get("options", {})
     scene_fpfh = fpfh_features(
-        scene_down, v, float(n_opts.get("normal_radius_voxels", 2.0)), float(n_opts.get("feature_radius_voxels", 5.0))
+        scene_down,
+        v,
+        float(n_opts.get("normal_radius_voxels", 2.0)),
+        float(n_opts.get("feature_radius_voxels", 5.0)),
     )
     target_down = _Target(scene_down)
     target_fine = _Target(scene_fine)
@@ -466,8 +480,12 @@ def estimate_pose(
     trials: list[Trial] = []
 
     def polish(init: Mat4, source: str, t_begin: float) -> None:
-        t = _icp(model.down_points, model.down_normals, target_down, init, o.icp_scales_voxels[0] * v, 10)
-        t = _icp(model.down_points, model.down_normals, target_fine, t, o.icp_scales_voxels[1] * v, 10)
+        t = _icp(
+            model.down_points, model.down_normals, target_down, init, o.icp_scales_voxels[0] * v, 10
+        )
+        t = _icp(
+            model.down_points, model.down_normals, target_fine, t, o.icp_scales_voxels[1] * v, 10
+        )
         pts = transform_points(t, model.down_points)
         ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
         trials.append(
@@ -481,116 +499,147 @@ def estimate_pose(
             )
         )
 
-    if len(scene_down.points) >= 3:
-        for k in range(o.n_seeds):
-            tk = time.perf_counter()
-            o3d.utility.random.seed(o.seed * 1000 + k)
-            # scene → model by default: every visible scene point has its match on the
-            # model, while model points on the hidden side only add false matches
-            from_scene = o.ransac_direction == "scene_to_model" or (
-                o.ransac_direction == "alternate" and k % 2 == 0
-            )
-            res = REG.registration_ransac_based_on_feature_matching(
-                scene_down if from_scene else model_feat,
-                model_feat if from_scene else scene_down,
-                f_scene if from_scene else f_model,
-                f_model if from_scene else f_scene,
-                o.mutual_filter,
-                o.ransac_distance_voxels * v,
-                REG.TransformationEstimationPointToPoint(False),
-                3,
-                checkers,
-                REG.RANSACConvergenceCriteria(o.ransac_max_iterations, o.ransac_confidence),
-            )
-            if len(res.correspondence_set) >= 3:
-                t_res = np.asarray(res.transformation, dtype=np.float64)
-                polish(invert_rigid(t_res) if from_scene else t_res, f"ransac seed {k}", tk)
-    if previous is not None:
-        polish(previous, "previous pose", time.perf_counter())
-    if not trials or max(t.score for t in trials) <= 0.0:
-        raise RegistrationError(
-            f"no registration candidate explains the scene region ({len(trials)} candidates, "
-            f"{len(c_pts)} points within {radius:.3f} m)"
-        )
-    # flip hypotheses: RANSAC on a partial view often gets an elongated object's axes right
-    # but its ends swapped; try the best candidates turned 180° about each principal axis
-    # and about the model's near-symmetries
-    for base in _distinct_ranked(trials, model.symmetry, diam, model.centre_object)[: o.n_flip_bases]:
-        for name, flip in _flips(model):
-            polish(base.env_from_object @ flip, f"{base.source} + {name}", time.perf_counter())
-    timings["global"] = time.perf_counter() - t0
-    distinct = _distinct_ranked(trials, model.symmetry, diam, model.centre_object)
-
-    # 3. refinement of the best few distinct candidates and of the model's near-symmetric
-    #    alternatives of the best one: multi-scale point-to-plane ICP (coarse scales on a
-    #    v/2 subsample, the last on every model point), re-scored at a fine scale where
-    #    near-symmetric alternatives separate
-    t0 = time.perf_counter()
+    flipped: set[int] = set()
+    refined_ids: set[int] = set()
+    refined: list[tuple[float, Mat4, Trial]] = []
     model_full = make_cloud(model.points, model.normals, model.colors)
     model_mid = model_full.voxel_down_sample(v / 2)
     tau_fine = o.fine_score_voxels * v
     mid_points = np.asarray(model_mid.points)
     mid_normals = _normalised(np.asarray(model_mid.normals))
-    refined: list[tuple[float, Mat4, Trial]] = []
-    for t in distinct[: o.n_refine]:
-        pose = t.env_from_object
-        for scale in o.icp_scales_voxels:
-            pose = _icp(mid_points, mid_normals, target_fine, pose, scale * v, o.icp_max_iterations)
-        score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
-        refined.append((score, pose, t))
-    refined.sort(key=lambda r: -r[0])
-    best_fine, env_from_object, best = refined[0]
-    env_from_object = _icp(
-        model.points, model.normals, target_fine, env_from_object, o.icp_scales_voxels[-1] * v, o.icp_max_iterations
-    )
-    runner_up = next(
-        (
-            r[0]
-            for r in refined[1:]
-            if _distinct(r[1], env_from_object, model.symmetry, diam, centre=model.centre_object)
-        ),
-        0.0,
-    )
-    dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
-    ev = REG.evaluate_registration(model_full, scene_fine, dist_in, env_from_object)
-    if o.colored_icp and model.colors is not None and scene_fine.has_colors():
-        try:
-            col = REG.registration_colored_icp(
-                model_full,
-                scene_fine,
-                o.icp_scales_voxels[-1] * v,
-                env_from_object,
-                REG.TransformationEstimationForColoredICP(),
-                REG.ICPConvergenceCriteria(1e-7, 1e-7, 30),
+    timings["refine"] = 0.0
+    # rounds: more RANSAC seeds only while the best pose is not verified (hard views)
+    for round_ in range(o.max_rounds):
+        t0 = time.perf_counter()
+        if len(scene_down.points) >= 3:
+            for k in range(round_ * o.n_seeds, (round_ + 1) * o.n_seeds):
+                tk = time.perf_counter()
+                o3d.utility.random.seed(o.seed * 1000 + k)
+                # scene → model by default: every visible scene point has its match on the
+                # model, while model points on the hidden side only add false matches
+                from_scene = o.ransac_direction == "scene_to_model" or (
+                    o.ransac_direction == "alternate" and k % 2 == 0
+                )
+                res = REG.registration_ransac_based_on_feature_matching(
+                    scene_down if from_scene else model_feat,
+                    model_feat if from_scene else scene_down,
+                    f_scene if from_scene else f_model,
+                    f_model if from_scene else f_scene,
+                    o.mutual_filter,
+                    o.ransac_distance_voxels * v,
+                    REG.TransformationEstimationPointToPoint(False),
+                    3,
+                    checkers,
+                    REG.RANSACConvergenceCriteria(o.ransac_max_iterations, o.ransac_confidence),
+                )
+                if len(res.correspondence_set) >= 3:
+                    t_res = np.asarray(res.transformation, dtype=np.float64)
+                    polish(invert_rigid(t_res) if from_scene else t_res, f"ransac seed {k}", tk)
+        if round_ == 0 and previous is not None:
+            polish(previous, "previous pose", time.perf_counter())
+        if not trials or max(t.score for t in trials) <= 0.0:
+            raise RegistrationError(
+                f"no registration candidate explains the scene region ({len(trials)} candidates, "
+                f"{len(c_pts)} points within {radius:.3f} m)"
             )
-            t_col = np.asarray(col.transformation, dtype=np.float64).copy()
-            ev_col = REG.evaluate_registration(model_full, scene_fine, dist_in, t_col)
-            if ev_col.fitness >= ev.fitness - 0.01 and ev_col.inlier_rmse <= ev.inlier_rmse * 1.05:
-                env_from_object, ev = t_col, ev_col
-        except RuntimeError:
-            pass  # coloured ICP needs enough coloured correspondences; keep the geometric fit
-    timings["refine"] = time.perf_counter() - t0
+        # flip hypotheses: RANSAC on a partial view often gets an elongated object's axes right
+        # but its ends swapped; try the best candidates turned 180° about each principal axis
+        # and about the model's near-symmetries
+        for base in _distinct_ranked(trials, model.symmetry, diam, model.centre_object)[
+            : o.n_flip_bases
+        ]:
+            if id(base) in flipped:
+                continue
+            flipped.add(id(base))
+            for name, flip in _flips(model):
+                polish(base.env_from_object @ flip, f"{base.source} + {name}", time.perf_counter())
+        timings["global"] = timings.get("global", 0.0) + time.perf_counter() - t0
+        t0 = time.perf_counter()
+        distinct = _distinct_ranked(trials, model.symmetry, diam, model.centre_object)
 
-    # 4. verification figures
-    fitness = float(ev.fitness)
-    rmse = float(ev.inlier_rmse)
-    coverage: float | None = None
-    if cluster is not None:
-        posed = cKDTree(transform_points(env_from_object, model.points))
-        d, _ = posed.query(cluster, distance_upper_bound=min(o.coverage_voxels * v, o.max_inlier_distance_m))
-        coverage = float(np.isfinite(d).mean())
-    rejections = []
-    if fitness < o.min_fitness:
-        rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
-    max_rmse = min(o.max_rmse_voxels * v, 0.6 * o.max_inlier_distance_m)
-    if rmse > max_rmse or fitness == 0.0:
-        rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {max_rmse * 1000:.1f} mm")
-    if runner_up > o.max_runner_up_ratio * best_fine:
-        rejections.append(
-            f"a distinct pose scores {runner_up / best_fine:.2f} of the best (> {o.max_runner_up_ratio})"
+        # 3. refinement of the best few distinct candidates and of the model's near-symmetric
+        #    alternatives of the best one: multi-scale point-to-plane ICP (coarse scales on a
+        #    v/2 subsample, the last on every model point), re-scored at a fine scale where
+        #    near-symmetric alternatives separate
+        for t in [t for t in distinct if id(t) not in refined_ids][: o.n_refine]:
+            refined_ids.add(id(t))
+            pose = t.env_from_object
+            for scale in o.icp_scales_voxels:
+                pose = _icp(
+                    mid_points, mid_normals, target_fine, pose, scale * v, o.icp_max_iterations
+                )
+            score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
+            refined.append((score, pose, t))
+        refined.sort(key=lambda r: -r[0])
+        best_fine, env_from_object, best = refined[0]
+        env_from_object = _icp(
+            model.points,
+            model.normals,
+            target_fine,
+            env_from_object,
+            o.icp_scales_voxels[-1] * v,
+            o.icp_max_iterations,
         )
-    if coverage is not None and coverage < o.min_cluster_coverage:
-        rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
+        runner_up = next(
+            (
+                r[0]
+                for r in refined[1:]
+                if _distinct(
+                    r[1], env_from_object, model.symmetry, diam, centre=model.centre_object
+                )
+            ),
+            0.0,
+        )
+        dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
+        ev = REG.evaluate_registration(model_full, scene_fine, dist_in, env_from_object)
+        if o.colored_icp and model.colors is not None and scene_fine.has_colors():
+            try:
+                col = REG.registration_colored_icp(
+                    model_mid,
+                    scene_fine,
+                    o.icp_scales_voxels[-1] * v,
+                    env_from_object,
+                    REG.TransformationEstimationForColoredICP(),
+                    REG.ICPConvergenceCriteria(1e-7, 1e-7, 30),
+                )
+                t_col = np.asarray(col.transformation, dtype=np.float64).copy()
+                ev_col = REG.evaluate_registration(model_full, scene_fine, dist_in, t_col)
+                if (
+                    ev_col.fitness >= ev.fitness - 0.01
+                    and ev_col.inlier_rmse <= ev.inlier_rmse * 1.05
+                ):
+                    env_from_object, ev = t_col, ev_col
+            except RuntimeError:
+                pass  # coloured ICP needs enough coloured correspondences; keep the geometric fit
+        timings["refine"] += time.perf_counter() - t0
+
+        # 4. verification figures
+        fitness = float(ev.fitness)
+        rmse = float(ev.inlier_rmse)
+        coverage: float | None = None
+        if cluster is not None:
+            posed = cKDTree(transform_points(env_from_object, model.points))
+            d, _ = posed.query(
+                cluster, distance_upper_bound=min(o.coverage_voxels * v, o.max_inlier_distance_m)
+            )
+            coverage = float(np.isfinite(d).mean())
+        rejections: list[str] = []
+        if fitness < o.min_fitness:
+            rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
+        max_rmse = min(o.max_rmse_voxels * v, 0.6 * o.max_inlier_distance_m)
+        if rmse > max_rmse or fitness == 0.0:
+            rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {max_rmse * 1000:.1f} mm")
+        if runner_up > o.max_runner_up_ratio * best_fine:
+            ratio = runner_up / best_fine
+            rejections.append(
+                f"a distinct pose scores {ratio:.2f} of the best (> {o.max_runner_up_ratio})"
+            )
+        if coverage is not None and coverage < o.min_cluster_coverage:
+            rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
+
+        if not rejections:
+            break
+    timings["rounds"] = float(round_ + 1)
 
     # 5. symmetry: one canonical pose
     chosen, chosen_by, equivalents = _canonical(
@@ -646,7 +695,12 @@ def _flips(model: PreparedModel) -> list[tuple[str, Mat4]]:
     out = []
     for i in range(3):
         r = 2.0 * np.outer(vecs[:, i], vecs[:, i]) - np.eye(3)  # 180° about axis i
-        out.append((f"flip about principal axis {i}", make_rigid(r, model.centre_object - r @ model.centre_object)))
+        out.append(
+            (
+                f"flip about principal axis {i}",
+                make_rigid(r, model.centre_object - r @ model.centre_object),
+            )
+        )
     out += [(f"near-symmetry {k}", n) for k, n in enumerate(model.near_symmetries)]
     return out
 

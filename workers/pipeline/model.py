@@ -10,7 +10,9 @@ Work-directory layout (version ``FORMAT_VERSION``)::
 
     work_dir/
       summary.json        name, source sha256, units, options, diameter_m, voxel_m,
-                          centre_object, up_object, symmetry spec, point counts, timings
+                          centre_object, up_object, symmetry spec (and whether detected
+                          or explicit), near_symmetries (4×4 lists), point counts, timings;
+                          written last, so its presence means the directory is complete
       model.ply           (N, 3) sampled surface cloud with normals and colours (metres)
       model_down.ply      (M, 3) the same cloud voxel-downsampled at ``voxel_m``
       features.npy        (K, 6) float64 points and normals that carry the descriptors: the
@@ -140,7 +142,9 @@ def _texture_colors(
     if uvs.shape[0] != 3 * len(mesh.triangles):
         return None
     uv = (
-        uvs[3 * tri] * bary[:, :1] + uvs[3 * tri + 1] * bary[:, 1:2] + uvs[3 * tri + 2] * bary[:, 2:]
+        uvs[3 * tri] * bary[:, :1]
+        + uvs[3 * tri + 1] * bary[:, 1:2]
+        + uvs[3 * tri + 2] * bary[:, 2:]
     )
     mat_ids = np.asarray(mesh.triangle_material_ids, dtype=np.int64)
     mat = mat_ids[tri] if mat_ids.shape[0] == len(mesh.triangles) else np.zeros(len(tri), np.int64)
@@ -158,7 +162,9 @@ def _texture_colors(
         col = np.clip((u * w).astype(np.int64), 0, w - 1)
         row = np.clip(((1.0 - v) * h).astype(np.int64), 0, h - 1)
         pix = img[row, col, :3].astype(np.float64)
-        out[sel] = pix / (65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0)
+        out[sel] = pix / (
+            65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0
+        )
     return out
 
 
@@ -185,7 +191,9 @@ def _sample_mesh(
     colors = _texture_colors(mesh, tri, bary)
     if colors is None and mesh.has_vertex_colors():
         vc = np.asarray(mesh.vertex_colors, dtype=np.float64)
-        colors = vc[f[tri, 0]] * bary[:, :1] + vc[f[tri, 1]] * bary[:, 1:2] + vc[f[tri, 2]] * bary[:, 2:]
+        colors = (
+            vc[f[tri, 0]] * bary[:, :1] + vc[f[tri, 1]] * bary[:, 1:2] + vc[f[tri, 2]] * bary[:, 2:]
+        )
     if options.sampling == "poisson":
         init = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         init.normals = o3d.utility.Vector3dVector(nrm)
@@ -229,7 +237,7 @@ def load_surface(
     mesh: o3d.geometry.TriangleMesh | None = None
     if suffix in MESH_SUFFIXES:
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            mesh = o3d.io.read_triangle_mesh(str(path), True)
+            mesh = o3d.io.read_triangle_mesh(path, True)
         if len(mesh.triangles) == 0:
             mesh = None
     if mesh is not None:
@@ -240,7 +248,7 @@ def load_surface(
         return _sample_mesh(mesh, options)
     if suffix not in CLOUD_SUFFIXES:
         raise InputError(f"{path.name}: no triangles could be read from this mesh file")
-    pcd = o3d.io.read_point_cloud(str(path))
+    pcd = o3d.io.read_point_cloud(path)
     pcd = pcd.remove_non_finite_points()
     if len(pcd.points) < 10:
         raise InputError(f"{path.name}: fewer than 10 finite points could be read")
@@ -290,7 +298,9 @@ def diameter_m(points: Points) -> float:
     return best
 
 
-def make_cloud(points: Points, normals: Points | None, colors: Points | None) -> o3d.geometry.PointCloud:
+def make_cloud(
+    points: Points, normals: Points | None, colors: Points | None
+) -> o3d.geometry.PointCloud:
     """An Open3D cloud from (N, 3) arrays (normals and colours optional)."""
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(points)))
     if normals is not None:
@@ -301,15 +311,20 @@ def make_cloud(points: Points, normals: Points | None, colors: Points | None) ->
 
 
 def fpfh_features(
-    pcd: o3d.geometry.PointCloud, voxel_m: float, normal_radius_voxels: float, feature_radius_voxels: float
+    pcd: o3d.geometry.PointCloud,
+    voxel_m: float,
+    normal_radius_voxels: float,
+    feature_radius_voxels: float,
 ) -> NDArray[np.float64]:
     """(M, 33) FPFH of a downsampled cloud; estimates normals (keeping orientation) if absent."""
     if not pcd.has_normals():
         pcd.estimate_normals(
             o3d.geometry.KDTreeSearchParamHybrid(radius=normal_radius_voxels * voxel_m, max_nn=30)
         )
-    feat = o3d.pipelines.registration.compute_fpfh_feature(
-        pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=feature_radius_voxels * voxel_m, max_nn=100)
+    # no ``indices``: Open3D's default computes every point ([] would compute none)
+    feat = o3d.pipelines.registration.compute_fpfh_feature(  # type: ignore[call-arg]
+        pcd,
+        o3d.geometry.KDTreeSearchParamHybrid(radius=feature_radius_voxels * voxel_m, max_nn=100),
     )
     return np.asarray(feat.data, dtype=np.float64).T.copy()
 
@@ -339,14 +354,16 @@ def view_features(
         i = np.arange(n) + 0.5
         z = 1.0 - 2.0 * i / n
         phi = np.pi * (1 + 5**0.5) * i
-        dirs = np.stack([np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], axis=1)
+        dirs = np.stack(
+            [np.sqrt(1 - z**2) * np.cos(phi), np.sqrt(1 - z**2) * np.sin(phi), z], axis=1
+        )
         dense = make_cloud(points, normals, None)
         for d in dirs:
             _, idx = dense.hidden_point_removal(centre + 3.0 * diam * d, 300.0 * diam)
-            idx = np.asarray(idx, dtype=np.int64)
-            if len(idx) < 20:
+            vis = np.asarray(idx, dtype=np.int64)
+            if len(vis) < 20:
                 continue
-            vp, vn, _ = _downsample(points[idx], normals[idx], None, voxel_m)
+            vp, vn, _ = _downsample(points[vis], normals[vis], None, voxel_m)
             if len(vp) < 10:
                 continue
             pts.append(vp)
@@ -456,8 +473,8 @@ def prepare_model(
         "timings_s": {"load_sample": t_load, "features": t_feat, "symmetry": t_sym},
     }
     work_dir.mkdir(parents=True, exist_ok=True)
-    o3d.io.write_point_cloud(str(work_dir / "model.ply"), make_cloud(points, normals, colors))
-    o3d.io.write_point_cloud(str(work_dir / "model_down.ply"), make_cloud(d_pts, d_nrm, d_col))
+    o3d.io.write_point_cloud(work_dir / "model.ply", make_cloud(points, normals, colors))
+    o3d.io.write_point_cloud(work_dir / "model_down.ply", make_cloud(d_pts, d_nrm, d_col))
     np.save(work_dir / "features.npy", np.hstack([f_pts, f_nrm]))
     np.save(work_dir / "fpfh.npy", fpfh.astype(np.float32))
     tmp = summary_path.with_suffix(".json.tmp")
@@ -478,16 +495,23 @@ def load_prepared(work_dir: Path) -> PreparedModel:
         raise InputError(f"{summary_path}: unreadable summary ({exc})") from exc
     if summary.get("format_version") != FORMAT_VERSION:
         raise InputError(f"{work_dir}: prepared with format {summary.get('format_version')}")
-    full = o3d.io.read_point_cloud(str(work_dir / "model.ply"))
-    down = o3d.io.read_point_cloud(str(work_dir / "model_down.ply"))
+    full = o3d.io.read_point_cloud(work_dir / "model.ply")
+    down = o3d.io.read_point_cloud(work_dir / "model_down.ply")
     fpfh_path = work_dir / "fpfh.npy"
     feat_path = work_dir / "features.npy"
-    if len(full.points) == 0 or len(down.points) == 0 or not fpfh_path.is_file() or not feat_path.is_file():
+    if (
+        len(full.points) == 0
+        or len(down.points) == 0
+        or not fpfh_path.is_file()
+        or not feat_path.is_file()
+    ):
         raise InputError(f"{work_dir}: prepared model files are missing or empty")
     fpfh = np.load(fpfh_path).astype(np.float64)
     feat = np.load(feat_path).astype(np.float64)
     if feat.ndim != 2 or feat.shape[1] != 6 or fpfh.shape != (len(feat), 33):
-        raise InputError(f"{work_dir}: features.npy {feat.shape} and fpfh.npy {fpfh.shape} disagree")
+        raise InputError(
+            f"{work_dir}: features.npy {feat.shape} and fpfh.npy {fpfh.shape} disagree"
+        )
     has_col = bool(summary.get("has_colors"))
     return PreparedModel(
         name=str(summary["name"]),
@@ -521,7 +545,7 @@ def with_symmetry(model: PreparedModel, spec: SymmetrySpec) -> PreparedModel:
 
 
 def cli(argv: list[str]) -> int:
-    """``python -m workers.pipeline model MESH --out DIR [--units mm] [--preset P] [--symmetry JSON]``."""
+    """``python -m workers.pipeline model MESH --out DIR [--units mm] [--symmetry JSON]``."""
     ap = argparse.ArgumentParser(prog="python -m workers.pipeline model")
     ap.add_argument("mesh", type=Path)
     ap.add_argument("--out", type=Path, required=True)

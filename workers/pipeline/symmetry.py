@@ -20,10 +20,12 @@ the others.
 **Spec (JSON-serialisable)**::
 
     {"kind": "none"}
-    {"kind": "discrete", "rotations": [4x4, ...]}          # the full finite group, identity first
-    {"kind": "continuous", "axis": [x, y, z], "origin": [x, y, z],
-     "rotations": [4x4, ...]}                             # extra discrete elements (e.g. the
-                                                          # 180° flip of a plain can), identity first
+    {"kind": "discrete", "rotations": [4x4, ...]}
+    {"kind": "continuous", "axis": [x, y, z], "origin": [x, y, z], "rotations": [4x4, ...]}
+
+``discrete``: the full finite group, identity first. ``continuous``: every rotation about
+``axis`` through ``origin``, composed with each of ``rotations`` (identity first, plus e.g.
+the 180° flip of a plain can).
     optional in each: "appearance_breaks": bool
 
 Matrices are row-major nested lists, rotations about points of the object frame (metres).
@@ -39,8 +41,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from workers.pipeline.errors import InputError
-from workers.pipeline.errors import ShapeError
+from workers.pipeline.errors import InputError, ShapeError
 from workers.pipeline.geometry import Mat4, Points, as_points, rotation_angle_deg
 
 KINDS = ("none", "discrete", "continuous")
@@ -100,11 +101,15 @@ def axis_angle_matrix(axis: Any, angle_rad: float) -> NDArray[np.float64]:
         raise ShapeError("axis must be a finite non-zero vector")
     x, y, z = a / norm
     k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+    out: NDArray[np.float64] = (
+        np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+    )
+    return out
 
 
-
-def rotation_about(axis: NDArray[np.float64], angle_rad: float, origin: NDArray[np.float64]) -> Mat4:
+def rotation_about(
+    axis: NDArray[np.float64], angle_rad: float, origin: NDArray[np.float64]
+) -> Mat4:
     """4×4 rotation by ``angle_rad`` about the line through ``origin`` along ``axis``."""
     r = axis_angle_matrix(axis, angle_rad)
     out = np.eye(4)
@@ -199,7 +204,9 @@ def _fibonacci_hemisphere(n: int) -> Points:
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
-def _candidate_axes(points: Points, gap: float) -> tuple[list[NDArray[np.float64]], list[NDArray[np.float64]]]:
+def _candidate_axes(
+    points: Points, gap: float
+) -> tuple[list[NDArray[np.float64]], list[NDArray[np.float64]]]:
     """(main axes, extra axes): principal and frame axes; extra samples in degenerate spaces."""
     c = points - points.mean(axis=0)
     w, v = np.linalg.eigh(c.T @ c / len(c))
@@ -234,7 +241,9 @@ class _Scorer:
         self.options = options
         self.centre = points.mean(axis=0)
         self.colour_base = (
-            float(np.abs(colors[idx] - colors[nn[:, 1]]).sum(axis=1).mean()) if colors is not None else 0.0
+            float(np.abs(colors[idx] - colors[nn[:, 1]]).sum(axis=1).mean())
+            if colors is not None
+            else 0.0
         )
 
     def mean_ratio(self, t: Mat4, coarse: bool = False) -> float:
@@ -248,7 +257,9 @@ class _Scorer:
         back, _ = self.tree.query((self.sub - t[:3, 3]) @ t[:3, :3])  # inverse direction
         dd = np.concatenate([d, back]) / self.d0
         o = self.options
-        return bool(dd.mean() <= o.max_mean_ratio and (dd > o.far_ratio).mean() <= o.max_far_fraction)
+        return bool(
+            dd.mean() <= o.max_mean_ratio and (dd > o.far_ratio).mean() <= o.max_far_fraction
+        )
 
     def colour_ratio(self, t: Mat4) -> float:
         if self.colors is None or self.colour_base <= 0:
@@ -342,7 +353,8 @@ def detect_symmetry(
     # continuous: about the main axes
     for axis in main:
         ok = all(
-            scorer.accepts(rotation_about(axis, np.radians(a), centre)) for a in o.continuous_angles_deg
+            scorer.accepts(rotation_about(axis, np.radians(a), centre))
+            for a in o.continuous_angles_deg
         )
         if not ok:
             continue
@@ -358,7 +370,9 @@ def detect_symmetry(
                     flips.append(snapped)
                     break
         rots = tuple([np.eye(4), *flips])
-        samples = [rotation_about(axis, np.radians(a), centre) for a in o.continuous_angles_deg] + flips
+        samples = [
+            rotation_about(axis, np.radians(a), centre) for a in o.continuous_angles_deg
+        ] + flips
         brk = max((scorer.colour_ratio(t) for t in samples), default=0.0) > o.colour_ratio
         return SymmetrySpec("continuous", rots, np.asarray(axis, np.float64), centre, brk)
 

@@ -33,7 +33,7 @@ FAST = MODEL_PRESETS["fast"]
 def _box_mesh(path: Path, size_xyz: tuple[float, float, float]) -> Path:
     box = o3d.geometry.TriangleMesh.create_box(*size_xyz)
     box.compute_triangle_normals()
-    o3d.io.write_triangle_mesh(str(path), box)
+    o3d.io.write_triangle_mesh(path, box)
     return path
 
 
@@ -122,7 +122,7 @@ def test_textured_obj_gets_texture_colours_and_work_dir_resumes(
 
 
 def test_load_prepared_refuses_an_incomplete_directory(tmp_path: Path) -> None:
-    with pytest.raises(InputError, match="summary.json"):
+    with pytest.raises(InputError, match=r"summary\.json"):
         load_prepared(tmp_path)
 
 
@@ -188,4 +188,6 @@ def test_explicit_symmetry_overrides_detection_and_cli_runs(tmp_path: Path) -> N
     assert code == 0
     summary = json.loads((tmp_path / "cli" / "summary.json").read_text())
     assert summary["symmetry"]["kind"] == "discrete"
-    assert pipeline_main(["model", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")]) == 2
+    assert (
+        pipeline_main(["model", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")]) == 2
+    )

@@ -5,8 +5,8 @@ Input: a :class:`~workers.pipeline.model.PreparedModel` (object frame) and the s
 
 1. crop a sphere of ``crop_factor × diameter`` around the cluster (a thresholded cluster is
    only part of the object; grown to cover the cluster) and downsample it at the model's
-   feature voxel ``v``; scene normals are used as given (estimated and oriented away from
-   the cluster centre when absent);
+   feature voxel ``v``; scene normals are used as given (when absent: estimated, oriented
+   away from the cluster centre, near-horizontal ones facing up);
 2. FPFH + RANSAC global registration, scene → model against the model's whole-model and
    per-view descriptors, with ``n_seeds`` seeds (one seed in five found the drill on real
    data); each candidate is polished by a short point-to-plane ICP and scored by a
@@ -291,6 +291,19 @@ def _crop(
     )
 
 
+def _orient_scene_normals(
+    normals: Points, points: Points, centre: NDArray[np.float64], up: NDArray[np.float64]
+) -> Points:
+    """Orient estimated (N, 3) normals without a viewpoint: away from the cluster centre,
+    except near-horizontal surfaces (normal within 37° of ``up``), which face up — the table
+    under an object is seen from above, and an object's hidden underside is not scanned."""
+    out = normals.copy()
+    out[np.einsum("ij,ij->i", out, points - centre) < 0] *= -1.0
+    along = out @ up
+    out[(np.abs(along) > 0.8) & (along < 0)] *= -1.0
+    return out
+
+
 def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     d, _ = tree.query(points, distance_upper_bound=tau)
     d = np.where(np.isfinite(d), d, tau)
@@ -453,10 +466,9 @@ def estimate_pose(
     scene_full = make_cloud(c_pts, c_nrm, c_col)
     if c_nrm is None:
         scene_full.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
-        nrm = np.asarray(scene_full.normals)
-        flip = np.einsum("ij,ij->i", nrm, c_pts - centre) < 0
-        nrm[flip] *= -1
-        scene_full.normals = o3d.utility.Vector3dVector(nrm)
+        scene_full.normals = o3d.utility.Vector3dVector(
+            _orient_scene_normals(np.asarray(scene_full.normals), c_pts, centre, up)
+        )
     scene_down = scene_full.voxel_down_sample(v)
     scene_down.normals = o3d.utility.Vector3dVector(_normalised(np.asarray(scene_down.normals)))
     scene_fine = (

@@ -203,6 +203,24 @@ def test_symmetric_object_is_ambiguous_and_never_upside_down(
         assert e_t < 0.005 and e_r < 2.0
 
 
+def test_scene_without_normals(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> None:
+    # a reconstructed cloud may come without normals: they are estimated and oriented
+    # (away from the cluster, horizontal surfaces up) and the upright can is still found
+    model = ycb_models["master_chef_can"]
+    true = upright(75.0, (-0.4, 0.1, 0.02))
+    scene, obj = partial_view(
+        shared_data / "ycb" / "master_chef_can" / "textured.obj",
+        true,
+        8,
+        camera_dirs=[np.array([-0.5, 0.4, 0.75])],
+    )
+    bare = SceneCloud.create(scene.points, colors=scene.colors)
+    result = estimate_pose(model, bare, cluster_points_env=obj)
+    dt, dr = symmetric_pose_error(result.env_from_object, true, model.symmetry)
+    assert dt < 0.005 and dr < 2.0
+    assert result.env_from_object[:3, :3] @ model.up_object @ UP > 0.99
+
+
 def test_bowl_upside_down_is_reported_upside_down(
     shared_data: Path, ycb_models: dict[str, PreparedModel]
 ) -> None:

@@ -57,6 +57,7 @@ class ReconstructOptions:
     # alignment to the previous snapshot
     icp_max_distances_m: tuple[float, ...] = (0.02, 0.01, 0.005)
     icp_voxel_m: float = 0.004
+    icp_max_source_points: int = 60_000
     max_alignment_correction_m: float = 0.05
     max_alignment_correction_deg: float = 3.0
     min_alignment_fitness: float = 0.3

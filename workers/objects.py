@@ -17,7 +17,7 @@ from workers.pipeline.symmetry import spec_from_json, spec_to_json
 from workers.runner import JobContext, run_job
 
 
-def process(job_id: str) -> str:
+def run(job_id: str) -> str:
     return run_job(job_id, _compute, _persist, on_failure)
 
 

@@ -19,13 +19,13 @@ import socket
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TypeVar
 
 from sqlalchemy.orm import Session
 
-from app.core import events, jobs
+from app.core import jobs
 from app.core.db import transaction
-from app.core.enums import EventType, JobState
+from app.core.enums import JobState
 from app.core.errors import DomainError
 from app.core.models import Job
 from app.core.settings import Settings, get_settings
@@ -129,27 +129,8 @@ def _fail(
         if on_failure is not None:
             on_failure(session, job, code, detail)
         if state == JobState.failed:
-            record_job_failed(session, job)
+            jobs.record_failed(session, job)
     return str(state)
-
-
-def record_job_failed(session: Session, job: Job) -> None:
-    """The ``job.failed`` event, in the transaction that fails the job."""
-    data: dict[str, Any] = {
-        "job": job.id,
-        "kind": str(job.kind),
-        "error": {"code": job.error_code, "detail": job.error_detail},
-        "snapshot": job.snapshot_id,
-        "comparison": job.comparison_id,
-        "object": job.object_id,
-    }
-    events.record(
-        session,
-        EventType.job_failed,
-        environment_id=job.environment_id,
-        subject=f"jobs/{job.id}",
-        data=data,
-    )
 
 
 def on_failure_of(kind: str) -> Callable[[Session, Job, str, str], None] | None:

@@ -51,7 +51,7 @@ class SnapshotInputs:
     previous_cloud_key: str | None
 
 
-def process(job_id: str) -> str:
+def run(job_id: str) -> str:
     return run_job(job_id, _compute, _persist, on_failure)
 
 

@@ -1,6 +1,6 @@
-"""Thin Celery tasks: each takes an id and hands over to a glue module that claims the job,
-runs the pure pipeline and persists (see workers/runner.py). Task names are stable dotted
-strings (app/core/queue.py routes them), never module paths.
+"""Thin Celery tasks: each takes an id and hands over to a glue module (``run(job_id)``) that
+claims the job, runs the pure pipeline and persists (see workers/runner.py). Task names are
+stable dotted strings (app/core/queue.py routes them), never module paths.
 
 The glue modules are imported inside the tasks, so the worker's parent process stays free
 of Open3D/pycolmap (and their thread pools) when it forks its pool.
@@ -8,6 +8,7 @@ of Open3D/pycolmap (and their thread pools) when it forks its pool.
 
 from __future__ import annotations
 
+import importlib
 import logging
 
 from app.core import jobs
@@ -18,34 +19,50 @@ from workers.celery_app import app
 log = logging.getLogger(__name__)
 
 
+def _run(job_id: str, module: str) -> str:
+    """Import ``module`` and run the job. A failure before the job is claimed (a broken
+    install, an import error) fails the job with its reason instead of leaving it queued
+    for the sweeper to send again and again."""
+    try:
+        glue = importlib.import_module(module)
+    except Exception as exc:
+        log.exception("cannot start job %s: %s does not import", job_id, module)
+        with transaction() as session:
+            job = jobs.fail_unclaimed(
+                session,
+                job_id,
+                "InternalError",
+                f"worker cannot start: {type(exc).__name__}: {exc}",
+            )
+            if job is not None:
+                jobs.record_failed(session, job)
+        return "failed"
+    outcome: str = glue.run(job_id)
+    return outcome
+
+
 @app.task(name="snapshot.process")
 def process_snapshot(job_id: str) -> str:
     """Ingest re-read → reconstruction → automatic comparison with the previous snapshot."""
-    from workers import snapshot
-
-    return snapshot.process(job_id)
+    return _run(job_id, "workers.snapshot")
 
 
 @app.task(name="comparison.run")
 def run_comparison(job_id: str) -> str:
     """Change detection, identification and pose for one comparison job."""
-    from workers import comparison
-
-    return comparison.run(job_id)
+    return _run(job_id, "workers.comparison")
 
 
 @app.task(name="object.prepare")
 def prepare_object(job_id: str) -> str:
     """Sample a library model, measure it and detect its symmetry."""
-    from workers import objects
-
-    return objects.process(job_id)
+    return _run(job_id, "workers.objects")
 
 
 @app.task(name="maintenance.sweep")
 def sweep() -> dict[str, int]:
     """Re-send lost queued jobs; requeue or fail running jobs whose heartbeat stopped."""
-    from workers.runner import on_failure_of, record_job_failed
+    from workers.runner import on_failure_of
 
     with transaction() as session:
         counts = jobs.sweep(session, get_settings())
@@ -53,7 +70,7 @@ def sweep() -> dict[str, int]:
             handler = on_failure_of(job.kind)
             if handler is not None:
                 handler(session, job, job.error_code or "WorkerLost", job.error_detail or "")
-            record_job_failed(session, job)
+            jobs.record_failed(session, job)
     if any(counts.values()):
         log.info("sweep: %s", counts)
     return counts

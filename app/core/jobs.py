@@ -18,8 +18,8 @@ from typing import Any
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from app.core import queue
-from app.core.enums import JobKind, JobState
+from app.core import events, queue
+from app.core.enums import EventType, JobKind, JobState
 from app.core.errors import Conflict, NotFound
 from app.core.models import Job, utcnow
 from app.core.settings import Settings
@@ -131,6 +131,39 @@ def finish(
     if job is not None:
         session.refresh(job)
     return job
+
+
+def fail_unclaimed(session: Session, job_id: str, code: str, detail: str) -> Job | None:
+    """Fail a job that no worker could even start (its task crashed before claiming it);
+    returns it, or None when it was not queued."""
+    updated = session.execute(
+        update(Job)
+        .where(Job.id == job_id, Job.state == JobState.queued)
+        .values(state=JobState.failed, finished_at=utcnow(), error_code=code, error_detail=detail)
+    )
+    if updated.rowcount != 1:  # type: ignore[attr-defined]
+        return None
+    job = get(session, job_id)
+    session.refresh(job)
+    return job
+
+
+def record_failed(session: Session, job: Job) -> None:
+    """The ``job.failed`` event, in the transaction that fails the job."""
+    events.record(
+        session,
+        EventType.job_failed,
+        environment_id=job.environment_id,
+        subject=f"jobs/{job.id}",
+        data={
+            "job": job.id,
+            "kind": str(job.kind),
+            "error": {"code": job.error_code, "detail": job.error_detail},
+            "snapshot": job.snapshot_id,
+            "comparison": job.comparison_id,
+            "object": job.object_id,
+        },
+    )
 
 
 def cancel(session: Session, job_id: str) -> Job:

@@ -121,6 +121,7 @@ def _scenarios(d: dict[str, Any]) -> dict[str, Any]:
             "found": sum(1 for c in run["ours"]["changes"] if c.get("found")),
             "true_changes": len(run["ours"]["changes"]),
             "false_changes": len(run["ours"]["false_changes"]),
+            "unidentified": run["ours"].get("unidentified"),
         }
     out["robustness"] = _get(d, "robustness", "summary") or _get(d, "robustness", "error")
     return out

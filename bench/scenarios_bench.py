@@ -215,6 +215,8 @@ def twin_before(truth: dict[str, Any], models: dict[str, PreparedModel]) -> list
 
 
 def cluster_table(result: CompareResult) -> list[dict[str, Any]]:
+    """The thesis's table: identification metric per (cluster, class), for the clusters
+    with any detector evidence (the rest are counted in ``n_clusters`` only)."""
     return [
         {
             "id": c.id,
@@ -225,6 +227,7 @@ def cluster_table(result: CompareResult) -> list[dict[str, Any]]:
             "metrics": {k: round(v, 4) for k, v in c.metrics.items()},
         }
         for c in result.clusters
+        if any(v > 0 for v in c.metrics.values())
     ]
 
 
@@ -257,10 +260,14 @@ def score(
         rows.append(row)
     return {
         "changes": rows,
+        # a change to the twin that no true change explains (an identified object)
         "false_changes": [
             {"type": f["type"], "object": f.get("object"), "cluster": f["cluster"]["id"]}
             for f in unmatched
+            if f.get("object") is not None
         ],
+        # clusters no class explains (reported, never applied to the twin)
+        "unidentified": sum(1 for f in unmatched if f.get("object") is None),
     }
 
 
@@ -339,7 +346,9 @@ def run_scenario(
             "changes": [
                 {"type": c.type, "object": c.object_name, "cluster": c.cluster.id}
                 for c in result.changes
+                if c.object_name is not None
             ],
+            "unidentified": sum(1 for c in result.changes if c.object_name is None),
             "stage_timings_s": result.stats.get("timings_s"),
         }
         if name == "ours":
@@ -371,6 +380,7 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     dt = [r["translation_error_m"] for r in posed]
     dr = [r["rotation_error_deg"] for r in posed]
     false = sum(len(run["ours"]["false_changes"]) for run in runs.values())
+    unidentified = sum(run["ours"]["unidentified"] for run in runs.values())
     true_metric = [r["true_class_metric"] for r in found]
     other_metric = [r["other_class_metric_max"] for r in found]
     xyz = np.abs(np.asarray([r["xyz_error_m"] for r in posed])) if posed else np.zeros((0, 3))
@@ -384,6 +394,8 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "true_changes": len(rows),
         "found_right_type_and_object": len(found) / len(rows) if rows else 1.0,
         "false_changes": false,
+        "unidentified_clusters": unidentified,
+        "verified_poses": sum(1 for r in posed if r.get("verified")),
         "true_class_metric_min": min(true_metric) if true_metric else None,
         "other_class_metric_max": max(other_metric) if other_metric else None,
         "posed": len(posed),

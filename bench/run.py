@@ -8,7 +8,8 @@ status and wall time and writes ``bench/results/summary.json`` with the headline
 of every result file. Before running, as root, installs the tools some comparisons need
 (wrk, colmap, cloudcompare) with apt-get; otherwise says so and records
 ``"skipped: <why>"`` for exactly the comparisons that need the missing tool.
-``--quick`` is a smoke run: fewer scenarios, views, trials and seconds.
+``--quick`` is a smoke run (fewer scenarios, views, trials and seconds) whose results go
+to ``bench/results/quick/`` so they never overwrite a full run's.
 Timings depend on the machine's load; every result file records the load average.
 """
 
@@ -175,8 +176,8 @@ BENCHES: tuple[Bench, ...] = (
         "pose",
         "bench.pose_bench",
         "pose.json",
-        (),
-        ("--trials", "2", "--real-trials", "1"),
+        ("--work", "/tmp/benchh/pose"),
+        ("--work", "/tmp/benchh/pose", "--trials", "2", "--real-trials", "1"),
         headline=_pose,
     ),
     Bench(
@@ -227,9 +228,11 @@ def run_one(bench: Bench, quick: bool, tools: dict[str, str | None]) -> dict[str
         return {"status": f"skipped: {', '.join(missing)} not installed"}
     LOGS.mkdir(parents=True, exist_ok=True)
     log = LOGS / f"{bench.name}.log"
+    results = RESULTS / "quick" if quick else RESULTS
+    result_path = results / bench.result
     cmd = [sys.executable, "-m", bench.module, *(bench.quick_args if quick else bench.args)]
+    cmd += ["--out", str(result_path)]
     print(f"[bench] {bench.name}: {' '.join(cmd[1:])}  (log: {log})", flush=True)
-    result_path = RESULTS / bench.result
     before = result_path.stat().st_mtime if result_path.exists() else None
     t0 = time.perf_counter()
     try:
@@ -246,7 +249,7 @@ def run_one(bench: Bench, quick: bool, tools: dict[str, str | None]) -> dict[str
         "exit_status": code,
         "wall_s": wall,
         "status": "ok" if code == 0 else ("timeout" if code is None else "failed"),
-        "result_file": f"bench/results/{bench.result}",
+        "result_file": str(result_path.relative_to(ROOT)),
         "log": str(log),
     }
     fresh = result_path.exists() and result_path.stat().st_mtime != before
@@ -277,8 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown benchmark(s) {sorted(unknown)}; choose from {names}")
     tools = ensure_tools()
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    summary_path = RESULTS / "summary.json"
+    results = RESULTS / "quick" if args.quick else RESULTS
+    results.mkdir(parents=True, exist_ok=True)
+    summary_path = results / "summary.json"
     summary: dict[str, Any] = {
         "quick": args.quick,
         "cpus": os.cpu_count(),

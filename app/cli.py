@@ -23,6 +23,8 @@ from alembic.config import Config
 from app.core.settings import get_settings
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+MAX_RESTARTS = 5
+RESTART_WINDOW_S = 300.0
 
 
 def migrate() -> None:
@@ -93,6 +95,7 @@ def serve(host: str, port: int, cpu_concurrency: int) -> int:
     ]
     commands = [api, *worker_commands(data_dir, cpu_concurrency)]
     procs = [subprocess.Popen(cmd, env=env, cwd=REPO_ROOT) for cmd in commands]
+    restarts: list[list[float]] = [[] for _ in commands]
     print(f"twindelta: serving on http://{host}:{port} (data in {data_dir})", flush=True)
     stopping = False
 
@@ -104,13 +107,22 @@ def serve(host: str, port: int, cpu_concurrency: int) -> int:
     signal.signal(signal.SIGTERM, stop)
     status = 0
     while not stopping:
-        for cmd, proc in zip(commands, procs, strict=True):
+        for i, (cmd, proc) in enumerate(zip(commands, procs, strict=True)):
             code = proc.poll()
-            if code is not None:
-                print(
-                    f"twindelta: {' '.join(cmd[2:5])} exited with {code}; stopping", file=sys.stderr
-                )
+            if code is None:
+                continue
+            name = " ".join(cmd[2:5])
+            now = time.monotonic()
+            recent = [t for t in restarts[i] if now - t < RESTART_WINDOW_S]
+            if i == 0 or len(recent) >= MAX_RESTARTS:
+                # The API, or a worker that keeps dying: stop everything and say so.
+                print(f"twindelta: {name} exited with {code}; stopping", file=sys.stderr)
                 stopping, status = True, code or 1
+                break
+            # A crashed worker is restarted; its jobs are recovered by the sweeper.
+            print(f"twindelta: {name} exited with {code}; restarting it", file=sys.stderr)
+            restarts[i] = [*recent, now]
+            procs[i] = subprocess.Popen(cmd, env=env, cwd=REPO_ROOT)
         time.sleep(0.5)
     for proc in procs:
         if proc.poll() is None:

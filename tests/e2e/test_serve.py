@@ -5,6 +5,8 @@ another, prepare a library object."""
 from __future__ import annotations
 
 import json
+import os
+import signal
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -95,3 +97,32 @@ def test_embedded_serve_end_to_end(
 
     unauth = httpx.get(f"http://127.0.0.1:{port}/v1/environments")
     assert unauth.status_code == 401
+
+    # A crashed CPU worker is restarted by `serve`, and work goes on.
+    serve_pid = procs.procs["serve"].pid
+    cpu = [p for p in children(serve_pid) if "-Q cpu" in cmdline(p)]
+    assert len(cpu) == 1
+    for pid in [*children(cpu[0]), cpu[0]]:
+        os.kill(pid, signal.SIGKILL)
+    obj2 = client.post(
+        "/v1/objects", files={"file": (f"{classes[1]}.ply", model)}, data={"name": classes[1]}
+    )
+    assert obj2.status_code == 202, obj2.text
+    assert poll_job(client, obj2.json()["job"]["id"], 180)["state"] == "succeeded"
+
+
+def children(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                stat = (entry / "stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(entry.name))
+    return out
+
+
+def cmdline(pid: int) -> str:
+    return (Path("/proc") / str(pid) / "cmdline").read_bytes().replace(b"\0", b" ").decode()

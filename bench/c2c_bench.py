@@ -41,6 +41,7 @@ from workers.pipeline.synth.cameras import intrinsics_matrix
 from workers.pipeline.synth.generate import capture_path
 
 ROOT = Path(__file__).resolve().parents[1]
+TMP = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench"))
 CC_MEAN = re.compile(r"Mean distance\s*=\s*([-+0-9.eE]+)\s*/\s*std deviation\s*=\s*([-+0-9.eE]+)")
 COMPARE_TARGET_S = 10.0
 
@@ -203,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--runs", type=int, default=None)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/benchh/c2c"))
+    parser.add_argument("--work", type=Path, default=TMP / "c2c")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "c2c.json")
     args = parser.parse_args(argv)
     runs = args.runs or (1 if args.quick else 3)

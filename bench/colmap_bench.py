@@ -30,6 +30,7 @@ from workers.pipeline.reconstruct.sfm import run_sfm
 from workers.pipeline.synth import generate, preset
 
 ROOT = Path(__file__).resolve().parents[1]
+TMP = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench"))
 
 
 def ours(images: Path, work: Path, cameras_raw: dict[str, Any]) -> dict[str, Any]:
@@ -109,8 +110,8 @@ def colmap_cli(exe: str, images: Path, work: Path, cameras_raw: dict[str, Any]) 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--scene", type=Path, default=Path("/tmp/benchh/colmap/scene"))
-    parser.add_argument("--work", type=Path, default=Path("/tmp/benchh/colmap"))
+    parser.add_argument("--scene", type=Path, default=TMP / "colmap" / "scene")
+    parser.add_argument("--work", type=Path, default=TMP / "colmap")
     parser.add_argument(
         "--out", type=Path, default=ROOT / "bench" / "results" / "reconstruct_colmap.json"
     )

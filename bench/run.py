@@ -11,6 +11,7 @@ of every result file. Before running, as root, installs the tools some compariso
 ``--quick`` is a smoke run (fewer scenarios, views, trials and seconds) whose results go
 to ``bench/results/quick/`` so they never overwrite a full run's.
 Timings depend on the machine's load; every result file records the load average.
+Scratch files go under $TWINDELTA_BENCH_TMP (default /tmp/twindelta_bench).
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
-LOGS = Path(os.environ.get("TWINDELTA_BENCH_LOGS", "/tmp/twindelta_bench_logs"))
+TMP = os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench")
+LOGS = Path(TMP) / "logs"
 
 # tool → (executable names, Debian package)
 TOOLS: dict[str, tuple[tuple[str, ...], str]] = {
@@ -161,12 +163,12 @@ BENCHES: tuple[Bench, ...] = (
         "reconstruct",
         "bench.reconstruct_bench",
         "reconstruct.json",
-        ("--scene", "/tmp/benchh/reconstruct/scene", "--work", "/tmp/benchh/reconstruct/work"),
+        ("--scene", f"{TMP}/reconstruct/scene", "--work", f"{TMP}/reconstruct/work"),
         (
             "--scene",
-            "/tmp/benchh/reconstruct/scene",
+            f"{TMP}/reconstruct/scene",
             "--work",
-            "/tmp/benchh/reconstruct/work",
+            f"{TMP}/reconstruct/work",
             "--preset",
             "fast",
         ),
@@ -176,8 +178,8 @@ BENCHES: tuple[Bench, ...] = (
         "pose",
         "bench.pose_bench",
         "pose.json",
-        ("--work", "/tmp/benchh/pose"),
-        ("--work", "/tmp/benchh/pose", "--trials", "2", "--real-trials", "1"),
+        ("--work", f"{TMP}/pose"),
+        ("--work", f"{TMP}/pose", "--trials", "2", "--real-trials", "1"),
         headline=_pose,
     ),
     Bench(

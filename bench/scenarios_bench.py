@@ -61,6 +61,7 @@ from workers.pipeline.synth import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
+TMP = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench"))
 CACHE = ROOT / "bench" / ".cache"
 # power_drill first; the last non-symmetric object (hammer) is the generator's spare, the
 # one that appears in added / swapped / multiple; master_chef_can is the symmetric one.
@@ -428,7 +429,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="4 scenarios, 24 views, fast MVS")
     parser.add_argument("--scenarios", default=None, help="comma-separated subset")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--work", type=Path, default=Path("/tmp/benchh/scenarios"))
+    parser.add_argument("--work", type=Path, default=TMP / "scenarios")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scenarios.json")
     parser.add_argument("--no-robustness", action="store_true")
     args = parser.parse_args(argv)

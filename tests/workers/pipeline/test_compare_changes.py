@@ -194,7 +194,7 @@ def fake_cluster(cid: int, side: str, name: str | None, centre: Sequence[float])
 
 
 def test_pairing_rules_without_images() -> None:
-    opts = CompareOptions(moved_max_distance=2.0)
+    opts = CompareOptions(moved_max_distance=2.0, unidentified_min_points=1)
     diam = {"crate": 0.6, "bin": 0.6}
     clusters = [
         fake_cluster(1, "added", "crate", [3.0, 0, 0]),  # 3 m from the removed crate: not moved
@@ -221,6 +221,14 @@ def test_pairing_rules_without_images() -> None:
     ]
     swap = next(c for c in changes if c.type == "swapped")
     assert swap.replaced_object == "crate" and swap.replaced_instance_id is None
+    # a speck below unidentified_min_points, or one the old capture never saw as empty,
+    # is not a change
+    small = CompareOptions(moved_max_distance=2.0, unidentified_min_points=10**6)
+    assert all(
+        c.type != "unidentified" for c in classify_changes(clusters, twin, diam, small, Counter())
+    )
+    quiet = classify_changes(clusters, twin, diam, opts, Counter(), not_changes={7})
+    assert all(c.type != "unidentified" for c in quiet)
 
 
 @pytest.mark.parametrize("preset", ["lod", "thesis"])

@@ -8,14 +8,15 @@ Order of decisions (all pairings are optimal assignments, Hungarian, on centroid
 3. *swapped*: a leftover removed and a leftover added cluster of different classes whose
    centroids are < ``swap_distance_factor × max(diameters)`` apart (about the same place);
 4. leftovers: *added* (a new instance id) and *removed*;
-5. unidentified clusters are reported as ``unidentified`` changes, never dropped.
+5. unidentified clusters of at least ``unidentified_min_points`` points are reported as
+   ``unidentified`` changes, never dropped; they all stay in the clusters table.
 Identity across snapshots: moved keeps the closed instance's id; added and swapped-in
 objects get a new one from ``new_id``.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -52,8 +53,11 @@ def classify_changes(
     class_diameters_m: Mapping[str, float],
     options: CompareOptions,
     new_id: Callable[[], str],
+    not_changes: Collection[int] = (),
 ) -> list[Change]:
-    """Changes from identified clusters and the twin state (see module docstring)."""
+    """Changes from identified clusters and the twin state (see module docstring).
+    ``not_changes``: ids of unidentified clusters without evidence of a change (kept in
+    the clusters table, not reported)."""
 
     def diameter(name: str | None) -> float:
         return float(class_diameters_m.get(name or "", 0.0))
@@ -160,9 +164,14 @@ def classify_changes(
             )
         )
 
-    # 5. unidentified
+    # 5. unidentified: reported, never dropped, once they are large enough to be an object
+    # (identified clusters have the detector's evidence; an unidentified speck is noise)
     for c in clusters:
-        if c.object_name is None:
+        if (
+            c.object_name is None
+            and c.n_points >= options.unidentified_min_points
+            and c.id not in not_changes
+        ):
             changes.append(
                 Change(
                     id=new_id(), type="unidentified", object_name=None, instance_id=None, cluster=c

@@ -98,9 +98,16 @@ class CompareOptions:
     min_visible_points: int = 8
     # "not seen ≠ removed": a candidate counts only if ≥ min_seen_views of the other
     # capture's cameras see the space where it was as empty
+    # "not seen ≠ added" likewise: new geometry counts only where the old capture saw empty
+    # space (a hole in the old cloud is not an addition; measured on the demo scene:
+    # 114 false floor-patch changes → 23 with it and 2 views)
     check_seen_removed: bool = True
-    check_seen_added: bool = False
-    min_seen_views: int = 1
+    check_seen_added: bool = True
+    min_seen_views: int = 2
+    min_seen_fraction: float = 0.5
+    # an unidentified cluster smaller than this is not reported as a change (it stays in the
+    # clusters table): ~5 × 5 cm of surface at a 2.5 mm spacing
+    unidentified_min_points: int = 300
     # merging clusters of one object
     merge_clusters: bool = True
     merge_containment: float = 0.6
@@ -127,6 +134,7 @@ class CompareOptions:
             "zbuffer_max_points",
             "min_visible_points",
             "min_seen_views",
+            "unidentified_min_points",
             "merge_size_margin",
             "moved_max_distance",
         )
@@ -137,6 +145,8 @@ class CompareOptions:
             raise InputError("option stats_region must be 'overlap' or 'all'")
         if not 0.0 <= self.box_percentile < 50.0:
             raise InputError("option box_percentile must be in [0, 50)")
+        if not 0.0 <= self.min_seen_fraction <= 1.0:
+            raise InputError("option min_seen_fraction must be in [0, 1]")
         if isinstance(self.threshold, Mapping):
             object.__setattr__(self, "threshold", ThresholdSpec.from_json(self.threshold))
 
@@ -168,7 +178,9 @@ PRESETS: dict[str, CompareOptions] = {
         use_visibility=False,
         box_percentile=0.0,
         check_seen_removed=False,
+        check_seen_added=False,
         merge_clusters=False,
+        unidentified_min_points=1,
     ),
     # the level of detection instead of a distribution quantile
     "lod": CompareOptions(threshold=ThresholdSpec(kind="lod")),

@@ -29,6 +29,7 @@ from workers.pipeline.compare.thresholds import (
     distance_stats,
 )
 from workers.pipeline.compare.visibility import (
+    BoolArray,
     DepthMap,
     box_from_pixels,
     covered_mask,
@@ -247,9 +248,14 @@ def compare_snapshots(
     if options.check_seen_removed and maps_after is not None:
         seen = seen_empty_counts(before.points_env[cand_removed], maps_after, *tol)
         cand_removed = cand_removed[seen >= options.min_seen_views]
+    # Added points where the old capture saw empty space. Only unidentified clusters need
+    # this evidence (a hole in the old cloud is not an addition); an identified object can
+    # stand where the old capture could not look, e.g. inside a swapped object's volume.
+    added_evidence: BoolArray | None = None
     if options.check_seen_added and maps_before is not None:
         seen = seen_empty_counts(after.points_env[cand_added], maps_before, *tol)
-        cand_added = cand_added[seen >= options.min_seen_views]
+        added_evidence = np.zeros(len(after.points_env), dtype=bool)
+        added_evidence[cand_added] = seen >= options.min_seen_views
     lap("seen_check")
 
     report("compare.clusters", 0.5)
@@ -280,8 +286,18 @@ def compare_snapshots(
     lap("clusters_identify")
 
     report("compare.changes", 0.9)
+    unevidenced = {
+        c.id
+        for c in clusters
+        if added_evidence is not None
+        and c.side == "added"
+        and c.object_name is None
+        and float(added_evidence[c.indices].mean()) < options.min_seen_fraction
+    }
     try:
-        changes = classify_changes(clusters, twin, class_diameters_m, options, make_id)
+        changes = classify_changes(
+            clusters, twin, class_diameters_m, options, make_id, not_changes=unevidenced
+        )
     except ValueError as exc:  # linear_sum_assignment on degenerate input
         raise ComparisonError(f"could not pair changes: {exc}") from exc
     lap("changes")

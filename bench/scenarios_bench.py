@@ -244,6 +244,7 @@ def score(
         row: dict[str, Any] = {"type": m.truth["type"], "object": m.truth["object"]}
         if m.found is not None:
             metrics = metrics_by_cluster.get(m.found["cluster"]["id"], {})
+            symmetric = m.rpy_error_deg is not None and any(map(math.isnan, m.rpy_error_deg))
             row.update(
                 found=True,
                 true_class_metric=metrics.get(m.truth["object"], 0.0),
@@ -253,8 +254,12 @@ def score(
                 verified=(m.found.get("pose_quality") or {}).get("verified"),
                 translation_error_m=m.translation_error_m,
                 rotation_error_deg=m.rotation_error_deg,
-                xyz_error_m=m.xyz_error_m,
-                rpy_error_deg=m.rpy_error_deg,
+                # per-axis errors of the model origin mean nothing for a symmetric object
+                # (any rotation about its axis is right); its translation_error_m is
+                # minimised over the symmetry group
+                xyz_error_m=None if symmetric else m.xyz_error_m,
+                rpy_error_deg=None if symmetric else m.rpy_error_deg,
+                symmetric=symmetric,
             )
         else:
             row["found"] = False
@@ -384,8 +389,9 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     unidentified = sum(run["ours"]["unidentified"] for run in runs.values())
     true_metric = [r["true_class_metric"] for r in found]
     other_metric = [r["other_class_metric_max"] for r in found]
-    xyz = np.abs(np.asarray([r["xyz_error_m"] for r in posed])) if posed else np.zeros((0, 3))
-    rpy = [r["rpy_error_deg"] for r in posed if not any(map(math.isnan, r["rpy_error_deg"]))]
+    xyz_rows = [r["xyz_error_m"] for r in posed if r.get("xyz_error_m") is not None]
+    xyz = np.abs(np.asarray(xyz_rows)) if xyz_rows else np.zeros((0, 3))
+    rpy = [r["rpy_error_deg"] for r in posed if r.get("rpy_error_deg") is not None]
     rpy_abs = np.abs(np.asarray(rpy)) if rpy else np.zeros((0, 3))
 
     def med(a: list[float]) -> float | None:

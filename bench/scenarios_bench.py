@@ -488,6 +488,9 @@ def main(argv: list[str] | None = None) -> int:
             write()
             continue
         report["scenarios"][name] = run
+        report["summary"] = summarise(
+            {k: v for k, v in report["scenarios"].items() if "error" not in v}
+        )
         print(
             f"[scenarios] {name}: {time.perf_counter() - t0:.0f} s, "
             f"ours {json.dumps(run['ours'], default=float)[:600]}",

@@ -31,7 +31,9 @@ def get_storage(settings: Annotated[Settings, Depends(get_settings)]) -> LocalSt
     return LocalStorage(settings.resolved_storage_dir)
 
 
-SessionDep = Annotated[Session, Depends(get_session)]
+# scope="function": the transaction commits before the response is sent, so a client that
+# got 201/202 can read what it created at once (and a failed commit is never answered 2xx).
+SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
 StorageDep = Annotated[LocalStorage, Depends(get_storage)]
 

@@ -62,6 +62,10 @@ from workers.pipeline.symmetry import SymmetrySpec
 REG = o3d.pipelines.registration
 
 
+#: the rejection a near-tie in 3D gets; the caller may settle it with 2D evidence
+RUNNER_UP_REASON = "a distinct pose scores"
+
+
 @dataclass(frozen=True)
 class PoseOptions:
     """Pose estimation settings; distances are in units of the model's voxel ``v``
@@ -608,7 +612,7 @@ def estimate_pose(
             (
                 r[0]
                 for r in refined[1:]
-                if _distinct(
+                if distinct_pose(
                     r[1], env_from_object, model.symmetry, diam, centre=model.centre_object
                 )
             ),
@@ -656,7 +660,7 @@ def estimate_pose(
         if runner_up > o.max_runner_up_ratio * best_fine:
             ratio = runner_up / best_fine
             rejections.append(
-                f"a distinct pose scores {ratio:.2f} of the best (> {o.max_runner_up_ratio})"
+                f"{RUNNER_UP_REASON} {ratio:.2f} of the best (> {o.max_runner_up_ratio})"
             )
         if coverage is not None and coverage < o.min_cluster_coverage:
             rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
@@ -705,7 +709,9 @@ def _distinct_ranked(
     out: list[Trial] = []
     for t in sorted(trials, key=lambda t: -t.score):
         if all(
-            _distinct(t.env_from_object, d.env_from_object, symmetry, diameter, 20.0, 0.1, centre)
+            distinct_pose(
+                t.env_from_object, d.env_from_object, symmetry, diameter, 20.0, 0.1, centre
+            )
             for d in out
         ):
             out.append(t)
@@ -734,7 +740,7 @@ def _spacing(model: PreparedModel) -> float:
     return float(np.median(d[:, 1]))
 
 
-def _distinct(
+def distinct_pose(
     a: Mat4,
     b: Mat4,
     symmetry: SymmetrySpec,

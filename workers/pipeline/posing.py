@@ -22,10 +22,19 @@ from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model import PreparedModel
-from workers.pipeline.pose import POSE_PRESETS, SceneCloud, estimate_pose
+from workers.pipeline.pose import (
+    POSE_PRESETS,
+    RUNNER_UP_REASON,
+    SceneCloud,
+    distinct_pose,
+    estimate_pose,
+)
 from workers.pipeline.verify import reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
+#: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
+#: any distinct near-tie before the tie counts as settled
+RIVAL_IOU_MARGIN = 0.1
 Progress = Callable[[str, float], None]
 
 
@@ -77,13 +86,43 @@ def pose_change(
     )
     quality = pose.quality_json()
     reasons = list(pose.rejections)
+    if check.passed and any(r.startswith(RUNNER_UP_REASON) for r in reasons):
+        # A distinct pose fits the cloud almost as well (a near-symmetric object): the
+        # detector's boxes settle it when the chosen pose explains them clearly better.
+        rivals = [
+            alt
+            for score, alt in pose.alternatives
+            if score > options.max_runner_up_ratio * pose.score
+            and distinct_pose(
+                alt,
+                pose.env_from_object,
+                model.symmetry,
+                model.diameter_m,
+                centre=model.centre_object,
+            )
+        ]
+        rival_iou = max(
+            (
+                reprojection_check(
+                    model.points, alt, class_id, after.cameras, after.detections, depth_maps
+                ).mean_iou
+                for alt in rivals
+            ),
+            default=0.0,
+        )
+        if check.mean_iou >= rival_iou + RIVAL_IOU_MARGIN:
+            reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
+            quality["settled_by_reprojection"] = {
+                "mean_iou": round(check.mean_iou, 4),
+                "best_rival_iou": round(rival_iou, 4),
+            }
     if not check.passed:
         reasons.append(
             f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
             "with the detector's boxes is too low"
         )
     quality.update(
-        verified=bool(pose.verified and check.passed),
+        verified=not reasons,
         reasons=reasons,
         reprojection=check.to_json(),
         chosen_by=pose.chosen_by,

@@ -252,6 +252,7 @@ def score(
                     (v for k, v in metrics.items() if k != m.truth["object"]), default=0.0
                 ),
                 verified=(m.found.get("pose_quality") or {}).get("verified"),
+                pose_reasons=(m.found.get("pose_quality") or {}).get("reasons"),
                 translation_error_m=m.translation_error_m,
                 rotation_error_deg=m.rotation_error_deg,
                 # per-axis errors of the model origin mean nothing for a symmetric object

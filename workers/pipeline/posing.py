@@ -13,6 +13,7 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.options import CompareOptions
@@ -29,7 +30,7 @@ from workers.pipeline.pose import (
     distinct_pose,
     estimate_pose,
 )
-from workers.pipeline.verify import reprojection_check
+from workers.pipeline.verify import ReprojectionCheck, reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
@@ -81,58 +82,74 @@ def pose_change(
             "pose": None,
             "pose_quality": {"verified": False, "reasons": [f"{exc.code}: {exc.detail}"]},
         }
-    check = reprojection_check(
-        model.points, pose.env_from_object, class_id, after.cameras, after.detections, depth_maps
-    )
+
+    def check_of(env_from_object: Any) -> ReprojectionCheck:
+        return reprojection_check(
+            model.points, env_from_object, class_id, after.cameras, after.detections, depth_maps
+        )
+
+    chosen = pose.env_from_object
+    check = check_of(chosen)
     quality = pose.quality_json()
+    quality["chosen_by"] = pose.chosen_by
     reasons = list(pose.rejections)
-    if check.passed and any(r.startswith(RUNNER_UP_REASON) for r in reasons):
-        # A distinct pose fits the cloud almost as well (a near-symmetric object): the
-        # detector's boxes settle it when the chosen pose explains them clearly better.
+    if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
+        # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
+        # bracket turned end for end): the detector's boxes choose among the near-ties, and
+        # settle the tie when one of them explains the boxes clearly best.
         rivals = [
             alt
             for score, alt in pose.alternatives
             if score > options.max_runner_up_ratio * pose.score
             and distinct_pose(
-                alt,
-                pose.env_from_object,
-                model.symmetry,
-                model.diameter_m,
-                centre=model.centre_object,
+                alt, chosen, model.symmetry, model.diameter_m, centre=model.centre_object
             )
         ]
-        rival_iou = max(
-            (
-                reprojection_check(
-                    model.points, alt, class_id, after.cameras, after.detections, depth_maps
-                ).mean_iou
-                for alt in rivals
-            ),
-            default=0.0,
+        ranked = sorted(
+            [(check, chosen), *((check_of(alt), alt) for alt in rivals)],
+            key=lambda pair: -pair[0].mean_iou,
         )
-        if check.mean_iou >= rival_iou + RIVAL_IOU_MARGIN:
+        best_check, best_pose = ranked[0]
+        second_iou = ranked[1][0].mean_iou if len(ranked) > 1 else 0.0
+        if best_pose is not chosen and not model.symmetry.is_symmetric:
+            quality.update(_fit_figures(model, scene, best_pose, pose.inlier_distance_m))
+            quality["chosen_by"] = "reprojection"
+            quality["switched_from_iou"] = round(check.mean_iou, 4)
+            chosen, check = best_pose, best_check
+        if check.mean_iou >= second_iou + RIVAL_IOU_MARGIN:
             reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
             quality["settled_by_reprojection"] = {
                 "mean_iou": round(check.mean_iou, 4),
-                "best_rival_iou": round(rival_iou, 4),
+                "best_rival_iou": round(second_iou, 4),
             }
     if not check.passed:
         reasons.append(
             f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
             "with the detector's boxes is too low"
         )
-    quality.update(
-        verified=not reasons,
-        reasons=reasons,
-        reprojection=check.to_json(),
-        chosen_by=pose.chosen_by,
-    )
-    centre = transform_points(pose.env_from_object, model.centre_object[None, :])[0]
+    quality.update(verified=not reasons, reasons=reasons, reprojection=check.to_json())
+    centre = transform_points(chosen, model.centre_object[None, :])[0]
     return {
-        "pose": pose.env_from_object.tolist(),
+        "pose": chosen.tolist(),
         "pose_quality": quality,
         "centroid_env": centre.tolist(),
     }
+
+
+def _fit_figures(
+    model: PreparedModel, scene: SceneCloud, env_from_object: Any, inlier_distance_m: float
+) -> dict[str, float]:
+    """``fitness`` (share of model points within ``inlier_distance_m`` of the scene) and
+    ``inlier_rmse`` (metres) of a pose, as the pose step reports them."""
+    posed = transform_points(env_from_object, model.points)
+    lo, hi = posed.min(axis=0) - inlier_distance_m, posed.max(axis=0) + inlier_distance_m
+    near = scene.points[np.all((scene.points >= lo) & (scene.points <= hi), axis=1)]
+    if len(near) == 0:
+        return {"fitness": 0.0, "inlier_rmse": 0.0}
+    d, _ = cKDTree(near).query(posed, distance_upper_bound=inlier_distance_m)
+    inliers = d[np.isfinite(d)]
+    rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else 0.0
+    return {"fitness": float(len(inliers) / len(posed)), "inlier_rmse": rmse}
 
 
 def pose_changes(

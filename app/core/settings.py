@@ -41,6 +41,8 @@ class Settings(BaseSettings):
     requeue_after_s: float = 120.0
     sweep_interval_s: float = 30.0
     progress_interval_s: float = 2.0
+    # GET /v1/jobs/{id} may answer from a per-process cache this young (0 turns it off)
+    job_poll_cache_s: float = 0.5
     task_time_limit_s: int = 3 * 3600
     broker_visibility_timeout_s: int = 6 * 3600
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
@@ -10,16 +12,46 @@ from app.api.schemas.common import ERRORS
 from app.api.schemas.jobs import JobRead
 from app.core import jobs
 from app.core.db import get_read_session_factory
+from app.core.settings import get_settings
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], responses=ERRORS)
+
+
+class _RecentJobs:
+    """Job reads of the last ``ttl_s`` seconds in this process. Workers write a job's
+    progress at most every couple of seconds, so a poll answered from here is at most
+    ``ttl_s`` older than the database; this process's own cancel replaces the entry."""
+
+    def __init__(self) -> None:
+        self._entries: dict[str, tuple[float, JobRead]] = {}
+
+    def get(self, job_id: str, ttl_s: float) -> JobRead | None:
+        entry = self._entries.get(job_id)
+        if entry is None or time.monotonic() - entry[0] > ttl_s:
+            return None
+        return entry[1]
+
+    def put(self, job: JobRead) -> None:
+        if len(self._entries) > 10_000:
+            self._entries.clear()
+        self._entries[job.id] = (time.monotonic(), job)
+
+
+RECENT = _RecentJobs()
 
 
 @router.get("/{job_id}")
 async def get_job(job_id: str, _key: ReadKey) -> JobRead:
     """A job's state, stage, progress 0..1 and error."""
-    # The hot path of every client that polls: one thread-pool hop for the read, instead
-    # of one per dependency.
-    return await run_in_threadpool(_read_job, job_id)
+    # The hot path of every client that polls: answered from a sub-second cache, else one
+    # thread-pool hop for the read instead of one per dependency.
+    ttl_s = get_settings().job_poll_cache_s
+    cached = RECENT.get(job_id, ttl_s) if ttl_s > 0 else None
+    if cached is not None:
+        return cached
+    job = await run_in_threadpool(_read_job, job_id)
+    RECENT.put(job)
+    return job
 
 
 def _read_job(job_id: str) -> JobRead:
@@ -30,4 +62,6 @@ def _read_job(job_id: str) -> JobRead:
 @router.post("/{job_id}/cancel")
 def cancel_job(job_id: str, session: SessionDep, _key: CaptureKey) -> JobRead:
     """Cancel a queued job at once, or ask a running one to stop; 409 when already finished."""
-    return JobRead.of(jobs.cancel(session, job_id))
+    job = JobRead.of(jobs.cancel(session, job_id))
+    RECENT.put(job)
+    return job

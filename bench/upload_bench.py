@@ -19,7 +19,6 @@ import json
 import os
 import platform
 import secrets
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,6 +31,8 @@ from typing import Any
 import httpx
 import numpy as np
 from PIL import Image
+
+from bench.client import free_port
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TARGET_PEAK_RSS_MB = 300.0
@@ -66,13 +67,6 @@ def build_archive(path: Path, size_bytes: int, distinct: int = 8) -> tuple[int, 
             n += 1
         zf.writestr("capture/classes.txt", "\n".join(CLASSES) + "\n")
     return path.stat().st_size, n
-
-
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port: int = sock.getsockname()[1]
-        return port
 
 
 def proc_status_kb(pid: int, field: str) -> int:

@@ -18,17 +18,11 @@ from pathlib import Path
 import httpx
 import pytest
 
+from bench.client import free_port
 from tests.app.conftest import create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
 
 ADMIN_KEY = "td_e2e_admin_key_0123456789abcdef"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 def wait_until(

@@ -12,7 +12,6 @@ import base64
 import ipaddress
 import itertools
 import json
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -30,6 +29,7 @@ from app.core.enums import DeliveryState, EventType
 from app.core.errors import InvalidInput
 from app.core.models import Delivery, DeliveryAttempt, Environment, utcnow
 from app.core.settings import get_settings
+from bench.client import free_port
 from tests.app.conftest import SentTasks
 
 # --- a real receiver on loopback --------------------------------------------------------------
@@ -127,13 +127,6 @@ class Receiver:
     def on(self, path: str) -> list[Hit]:
         with self.lock:
             return [h for h in self.hits if h.path == path]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port: int = s.getsockname()[1]
-        return port
 
 
 @pytest.fixture

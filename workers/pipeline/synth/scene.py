@@ -2,6 +2,8 @@
 
 All poses are ``env_from_object`` (4×4 float64, metres), environment z up, floor at z = 0.
 Objects rest on a support (floor or table top) by their lowest vertex and only turn about z.
+A new or moved object never stands where a removed or moved one stood (only a swap puts an
+object there), so each change has a place of its own.
 """
 
 from __future__ import annotations
@@ -253,6 +255,9 @@ def _layout(
         before.append(placer.place(model, f"inst-{k:02d}", before))
     next_id = f"inst-{len(before):02d}"
     after = list(before)
+    # where a removed or moved object stood: kept free of new and moved objects (only a
+    # swap puts a new object there), so one place holds one change
+    vacated: list[Placement] = []
     changes: list[dict[str, Any]] = []
 
     def pick(symmetric: bool | None) -> Placement:
@@ -262,21 +267,26 @@ def _layout(
         return pool[int(rng.integers(len(pool)))]
 
     def move(old: Placement) -> None:
-        others = [p for p in after if p is not old]
+        others = [p for p in after if p is not old] + vacated
         new = placer.place(
             old.model, old.instance_id, others, away_from=old, min_move_m=options.move_min_m
         )
         after[after.index(old)] = new
+        vacated.append(old)
         changes.append(_change("moved", new, old))
 
     def remove(old: Placement) -> None:
         after.remove(old)
+        vacated.append(old)
         changes.append(_change("removed", None, old))
 
-    if scenario == "added":
-        new = placer.place(spare, next_id, after)
+    def add(model: ObjectModel) -> None:
+        new = placer.place(model, next_id, after + vacated)
         after.append(new)
         changes.append(_change("added", new, None))
+
+    if scenario == "added":
+        add(spare)
     elif scenario == "removed":
         remove(pick(None))
     elif scenario in ("moved", "symmetric_moved"):
@@ -290,7 +300,5 @@ def _layout(
     elif scenario == "multiple":
         remove(pick(False))
         move(pick(None))
-        new = placer.place(spare, next_id, after)
-        after.append(new)
-        changes.append(_change("added", new, None))
+        add(spare)
     return before, after, changes

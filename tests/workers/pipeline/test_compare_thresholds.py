@@ -36,7 +36,14 @@ def test_fixed_threshold_and_json() -> None:
     )
     assert (s.mean, s.threshold) == (1.0, 0.02)
     assert s.std == pytest.approx(np.sqrt(2 / 3))
-    assert s.to_json() == {"mean": 1.0, "std": s.std, "threshold": 0.02, "n": 3, "region": "all"}
+    assert s.to_json() == {
+        "mean": 1.0,
+        "std": s.std,
+        "threshold": 0.02,
+        "grow_threshold": None,
+        "n": 3,
+        "region": "all",
+    }
     assert ThresholdSpec(kind="mean_std", k=1.0).to_json() == {"kind": "mean_std", "k": 1.0}
     with pytest.raises(InputError):
         ThresholdSpec.from_json({"kind": "median"})

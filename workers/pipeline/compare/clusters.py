@@ -5,6 +5,12 @@ included) within ``radius`` is a core point; connected core points form a cluste
 non-core point within ``radius`` of a core point joins that core's cluster; the rest is
 noise. Clusters under ``min_points`` points are specks and dropped. The radius follows the
 cloud: ``radius = factor × median nearest-neighbour spacing``.
+
+Hysteresis growth (as Canny's edge linking): clusters found at the strict threshold take the
+points above a lower threshold that they reach through chains of ``radius`` hops, no
+further than a geodesic ``max_distance``. It gives back an object's base, whose points lie
+close to the old floor and fall under the strict threshold, without letting noise seed a
+cluster of its own.
 """
 
 from __future__ import annotations
@@ -14,7 +20,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from workers.pipeline.errors import ComparisonError
@@ -80,6 +86,61 @@ def groups_from_labels(labels: IntArray, max_clusters: int | None = None) -> lis
     starts = np.searchsorted(sorted_labels, np.arange(n_labels), side="left")
     ends = np.searchsorted(sorted_labels, np.arange(n_labels), side="right")
     return [order[s:e].astype(np.int64) for s, e in zip(starts, ends, strict=True)]
+
+
+def grow_groups(
+    groups: Sequence[IntArray],
+    points_env: ArrayLike,
+    low: ArrayLike,
+    radius: float,
+    max_distance: float,
+) -> list[IntArray]:
+    """Each group of indices into (N, 3) ``points_env`` grown through the indices ``low``.
+
+    A ``low`` point joins the group it reaches by hops of ≤ ``radius`` metres through
+    ``low`` points, with a path length ≤ ``max_distance`` metres from the group's points;
+    a point reached by several groups joins the nearest. Returns the grown groups
+    (sorted indices; each a superset of its input). Raises ComparisonError for a
+    non-positive radius.
+    """
+    pts = as_points(points_env, "points_env")
+    if not radius > 0:
+        raise ComparisonError(f"growth radius must be > 0, got {radius}")
+    if not groups or max_distance <= 0:
+        return [np.sort(g) for g in groups]
+    seeds = np.concatenate(groups).astype(np.int64)
+    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    extra = np.setdiff1d(np.asarray(low, dtype=np.int64), seeds)
+    if extra.size:  # a path is never shorter than the straight line: prune far points
+        near, _ = cKDTree(pts[seeds]).query(pts[extra], distance_upper_bound=max_distance)
+        extra = extra[np.isfinite(near)]
+    if extra.size == 0:
+        return [np.sort(g) for g in groups]
+    nodes = np.concatenate([seeds, extra])
+    n_seeds = len(seeds)
+    tree = cKDTree(pts[nodes], balanced_tree=False, compact_nodes=False)
+    pairs = np.asarray(tree.query_pairs(radius, output_type="ndarray"), dtype=np.int64)
+    pairs = pairs.reshape(-1, 2)
+    pairs = pairs[(pairs[:, 0] >= n_seeds) | (pairs[:, 1] >= n_seeds)]  # seed–seed: no use
+    weight = np.linalg.norm(pts[nodes[pairs[:, 0]]] - pts[nodes[pairs[:, 1]]], axis=1)
+    graph = coo_matrix(
+        (np.maximum(weight, 1e-12), (pairs[:, 0], pairs[:, 1])), shape=(len(nodes),) * 2
+    ).tocsr()
+    _, _, source = dijkstra(
+        graph,
+        directed=False,
+        indices=np.arange(n_seeds),
+        min_only=True,
+        limit=max_distance,
+        return_predecessors=True,
+    )
+    reached = np.flatnonzero(source[n_seeds:] >= 0)
+    label = owner[source[n_seeds:][reached]]
+    grown_idx = extra[reached]
+    return [
+        np.sort(np.concatenate([g, grown_idx[label == k]])).astype(np.int64)
+        for k, g in enumerate(groups)
+    ]
 
 
 def extent(points_env: FloatArray) -> float:

@@ -87,6 +87,11 @@ class CompareOptions:
     cluster_min_samples: int = 4
     cluster_min_points: int = 30
     max_clusters: int = 100
+    # hysteresis growth: clusters found at ``threshold`` take the connected points above
+    # ``grow_threshold`` (capped at ``threshold``; None: no growth) within a path of
+    # grow_max_factor × the side's threshold, e.g. an object's base close to the old floor
+    grow_threshold: ThresholdSpec | None = field(default_factory=lambda: ThresholdSpec(kind="lod"))
+    grow_max_factor: float = 1.5
     # visibility (z-buffer by point splatting at reduced resolution)
     use_visibility: bool = True
     zbuffer_max_side: int = 256
@@ -149,11 +154,18 @@ class CompareOptions:
             raise InputError("option min_seen_fraction must be in [0, 1]")
         if isinstance(self.threshold, Mapping):
             object.__setattr__(self, "threshold", ThresholdSpec.from_json(self.threshold))
+        if isinstance(self.grow_threshold, Mapping):
+            spec = ThresholdSpec.from_json(self.grow_threshold)
+            object.__setattr__(self, "grow_threshold", spec)
+        if not self.grow_max_factor >= 0:
+            raise InputError("option grow_max_factor must be ≥ 0")
 
     def to_json(self) -> dict[str, Any]:
         """Plain JSON values; ``threshold`` in its short form."""
         out = dataclasses.asdict(self)
         out["threshold"] = self.threshold.to_json()
+        grow = self.grow_threshold
+        out["grow_threshold"] = None if grow is None else grow.to_json()
         return out
 
     def replace(self, **overrides: Any) -> CompareOptions:
@@ -162,8 +174,9 @@ class CompareOptions:
         unknown = set(overrides) - known
         if unknown:
             raise InputError(f"unknown compare options: {sorted(unknown)}")
-        if isinstance(overrides.get("threshold"), Mapping):
-            overrides["threshold"] = ThresholdSpec.from_json(overrides["threshold"])
+        for name in ("threshold", "grow_threshold"):
+            if isinstance(overrides.get(name), Mapping):
+                overrides[name] = ThresholdSpec.from_json(overrides[name])
         return dataclasses.replace(self, **overrides)
 
 
@@ -179,6 +192,7 @@ PRESETS: dict[str, CompareOptions] = {
         box_percentile=0.0,
         check_seen_removed=False,
         check_seen_added=False,
+        grow_threshold=None,
         merge_clusters=False,
         unidentified_min_points=1,
     ),

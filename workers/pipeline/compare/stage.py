@@ -1,23 +1,31 @@
 """The compare stage: two snapshots in the environment frame → clusters, identities, changes.
 
 Steps: C2C both ways → thresholds → candidate points → "not seen ≠ removed" filter →
-DBSCAN per side → re-projection with visibility into the side's own capture → merging of
-split clusters → identification table (thesis eq. 3.1) → change types against the twin.
+DBSCAN per side → hysteresis growth through points above the lower threshold →
+re-projection with visibility into the side's own capture → merging of split clusters →
+identification table (thesis eq. 3.1) → change types against the twin.
 Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import uuid
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.c2c import c2c_both_ways
 from workers.pipeline.compare.changes import classify_changes
-from workers.pipeline.compare.clusters import dbscan, groups_from_labels, merge_groups
+from workers.pipeline.compare.clusters import (
+    dbscan,
+    groups_from_labels,
+    grow_groups,
+    merge_groups,
+)
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.identify import containment, identify, yolo_to_boxes
 from workers.pipeline.compare.options import PRESETS, CompareOptions
@@ -29,7 +37,6 @@ from workers.pipeline.compare.thresholds import (
     distance_stats,
 )
 from workers.pipeline.compare.visibility import (
-    BoolArray,
     DepthMap,
     box_from_pixels,
     covered_mask,
@@ -73,10 +80,20 @@ def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]
             raise InputError(f"diameter of {name!r} must be finite and > 0, got {d}")
 
 
+def _near(points_env: FloatArray, idx: IntArray, ref: IntArray, distance_m: float) -> IntArray:
+    """The indices ``idx`` whose points lie within ``distance_m`` of some point of ``ref``."""
+    if idx.size == 0 or ref.size == 0:
+        return idx[:0]
+    d, _ = cKDTree(points_env[ref]).query(points_env[idx], distance_upper_bound=distance_m)
+    return np.asarray(idx[np.isfinite(d)], dtype=np.int64)
+
+
 def _side_clusters(
     side: Side,
     capture: CaptureData,
     candidates: IntArray,
+    low: IntArray | None,
+    grow_max_m: float,
     spacing_m: float,
     depth_maps: Sequence[DepthMap] | None,
     classes: Sequence[str],
@@ -84,17 +101,16 @@ def _side_clusters(
     options: CompareOptions,
     first_id: int,
 ) -> list[ClusterResult]:
-    """Cluster, re-project, merge and identify one side's candidate points."""
+    """Cluster, grow (through ``low`` points, when given), re-project, merge and identify
+    one side's candidate points (indices into the capture's cloud)."""
     pts = capture.points_env[candidates]
-    labels = dbscan(
-        pts,
-        options.cluster_radius_factor * spacing_m,
-        options.cluster_min_samples,
-        options.cluster_min_points,
-    )
+    radius = options.cluster_radius_factor * spacing_m
+    labels = dbscan(pts, radius, options.cluster_min_samples, options.cluster_min_points)
     groups = [candidates[g] for g in groups_from_labels(labels, options.max_clusters)]
     if not groups:
         return []
+    if low is not None:
+        groups = grow_groups(groups, capture.points_env, low, radius, grow_max_m)
     all_idx = np.concatenate(groups)
     owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
     cams = capture.cameras
@@ -206,7 +222,10 @@ def compare_snapshots(
     report("compare.distances", 0.0)
     c2c = c2c_both_ways(before.points_env, after.points_env)
     lap("c2c")
-    nb, lod = options.threshold.neighbours, options.threshold.kind == "lod"
+    grow = options.grow_threshold
+    specs = [options.threshold] + ([grow] if grow is not None else [])
+    nb = max(spec.neighbours for spec in specs)
+    lod = any(spec.kind == "lod" for spec in specs)
     stats_b = cloud_stats(c2c.tree_before, options.spacing_sample, nb, options.seed, lod)
     stats_a = cloud_stats(c2c.tree_after, options.spacing_sample, nb, options.seed, lod)
     lap("cloud_stats")
@@ -229,33 +248,50 @@ def compare_snapshots(
         compared: CloudStats,
         reference: CloudStats,
     ) -> DistanceStats:
+        region, sample = "all", dist
         if overlap and other_maps:
             idx = _sample_indices(len(dist), options.stats_sample, options.seed)
             covered = covered_mask(own.points_env[idx], other_maps, *tol)
             if np.count_nonzero(covered) >= options.cluster_min_points:
-                return distance_stats(
-                    dist[idx[covered]], options.threshold, compared, reference, reg, "overlap"
-                )
-        return distance_stats(dist, options.threshold, compared, reference, reg, "all")
+                region, sample = "overlap", dist[idx[covered]]
+        out = distance_stats(sample, options.threshold, compared, reference, reg, region)
+        if grow is None:
+            return out
+        low = distance_stats(sample, grow, compared, reference, reg, region).threshold
+        return dataclasses.replace(out, grow_threshold=min(low, out.threshold))
 
     dist_added = side_stats(c2c.added, after, maps_before, stats_a, stats_b)
     dist_removed = side_stats(c2c.removed, before, maps_after, stats_b, stats_a)
     cand_added = np.flatnonzero(c2c.added > dist_added.threshold).astype(np.int64)
     cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
     n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
+    # growth candidates: above the lower threshold, within the growth reach of a candidate
+    grow_max = {
+        "added": options.grow_max_factor * dist_added.threshold,
+        "removed": options.grow_max_factor * dist_removed.threshold,
+    }
+    low_added = low_removed = None
+    if dist_added.grow_threshold is not None and dist_removed.grow_threshold is not None:
+        low_added = _near(
+            after.points_env,
+            np.flatnonzero(c2c.added > dist_added.grow_threshold),
+            cand_added,
+            grow_max["added"],
+        )
+        low_removed = _near(
+            before.points_env,
+            np.flatnonzero(c2c.removed > dist_removed.grow_threshold),
+            cand_removed,
+            grow_max["removed"],
+        )
     lap("thresholds")
 
     if options.check_seen_removed and maps_after is not None:
         seen = seen_empty_counts(before.points_env[cand_removed], maps_after, *tol)
         cand_removed = cand_removed[seen >= options.min_seen_views]
-    # Added points where the old capture saw empty space. Only unidentified clusters need
-    # this evidence (a hole in the old cloud is not an addition); an identified object can
-    # stand where the old capture could not look, e.g. inside a swapped object's volume.
-    added_evidence: BoolArray | None = None
-    if options.check_seen_added and maps_before is not None:
-        seen = seen_empty_counts(after.points_env[cand_added], maps_before, *tol)
-        added_evidence = np.zeros(len(after.points_env), dtype=bool)
-        added_evidence[cand_added] = seen >= options.min_seen_views
+        if low_removed is not None:
+            seen = seen_empty_counts(before.points_env[low_removed], maps_after, *tol)
+            low_removed = low_removed[seen >= options.min_seen_views]
     lap("seen_check")
 
     report("compare.clusters", 0.5)
@@ -265,6 +301,8 @@ def compare_snapshots(
         "added",
         after,
         cand_added,
+        low_added,
+        grow_max["added"],
         stats_a.spacing,
         vis_after,
         classes,
@@ -276,6 +314,8 @@ def compare_snapshots(
         "removed",
         before,
         cand_removed,
+        low_removed,
+        grow_max["removed"],
         stats_b.spacing,
         vis_before,
         classes,
@@ -286,14 +326,20 @@ def compare_snapshots(
     lap("clusters_identify")
 
     report("compare.changes", 0.9)
-    unevidenced = {
-        c.id
-        for c in clusters
-        if added_evidence is not None
-        and c.side == "added"
-        and c.object_name is None
-        and float(added_evidence[c.indices].mean()) < options.min_seen_fraction
-    }
+    # Added points where the old capture saw empty space. Only unidentified clusters need
+    # this evidence (a hole in the old cloud is not an addition); an identified object can
+    # stand where the old capture could not look, e.g. inside a swapped object's volume.
+    # Judged on the cluster's points above the strict threshold (grown points lie close
+    # to old surfaces by construction).
+    unevidenced: set[int] = set()
+    if options.check_seen_added and maps_before is not None:
+        for c in clusters:
+            if c.side != "added" or c.object_name is not None:
+                continue
+            strict = c.indices[c2c.added[c.indices] > dist_added.threshold]
+            seen = seen_empty_counts(after.points_env[strict], maps_before, *tol)
+            if float(np.mean(seen >= options.min_seen_views)) < options.min_seen_fraction:
+                unevidenced.add(c.id)
     try:
         changes = classify_changes(
             clusters, twin, class_diameters_m, options, make_id, not_changes=unevidenced

@@ -39,12 +39,14 @@ class DistanceStats:
     threshold: float
     n: int = 0
     region: str = "all"
+    grow_threshold: float | None = None  # hysteresis growth's lower threshold, metres
 
-    def to_json(self) -> dict[str, float | int | str]:
+    def to_json(self) -> dict[str, float | int | str | None]:
         return {
             "mean": self.mean,
             "std": self.std,
             "threshold": self.threshold,
+            "grow_threshold": self.grow_threshold,
             "n": self.n,
             "region": self.region,
         }

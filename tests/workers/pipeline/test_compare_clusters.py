@@ -1,0 +1,83 @@
+"""Density clustering and hysteresis growth on point sets with known answers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.workers.pipeline.test_compare_changes import BASE, CAMS, run
+from tests.workers.pipeline.test_compare_scene import capture, crate
+from workers.pipeline.compare import PRESETS
+from workers.pipeline.compare.clusters import dbscan, grow_groups
+from workers.pipeline.errors import ComparisonError
+
+
+def _column(step: float = 0.01, height: float = 0.3) -> np.ndarray:
+    z = np.arange(0.0, height, step)
+    return np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+
+
+def test_dbscan_separates_two_blobs_and_drops_specks() -> None:
+    rng = np.random.default_rng(0)
+    a = rng.normal(0, 0.01, (200, 3))
+    b = rng.normal(0, 0.01, (100, 3)) + np.array([1.0, 0.0, 0.0])
+    speck = rng.normal(0, 0.001, (5, 3)) + np.array([0.0, 1.0, 0.0])
+    labels = dbscan(np.vstack([a, b, speck]), 0.02, 4, 30)
+    assert set(labels[:200]) == {0} and set(labels[200:300]) == {1}
+    assert set(labels[300:]) == {-1}
+
+
+def test_growth_follows_low_points_up_to_the_path_limit() -> None:
+    # points every 1 cm up a column; the cluster is z ≥ 5 cm; low points z ≥ 1 cm, plus a
+    # low point 1 m away (not connected)
+    pts = np.vstack([_column(), [[1.0, 0.0, 0.02]]])
+    z = pts[:, 2]
+    seeds = [np.flatnonzero((z >= 0.05 - 1e-9) & (pts[:, 0] == 0))]
+    low = np.flatnonzero(z >= 0.01 - 1e-9)
+    # 3.5 cm of path reaches z = 2 cm, not 1 cm
+    (short,) = grow_groups(seeds, pts, low, radius=0.015, max_distance=0.035)
+    assert z[short].min() == pytest.approx(0.02)
+    # 10 cm reaches every connected low point, never the far one nor the z = 0 point (not low)
+    (full,) = grow_groups(seeds, pts, low, radius=0.015, max_distance=0.1)
+    assert z[full].min() == pytest.approx(0.01)
+    assert len(pts) - 1 not in full and 0 not in full
+    assert set(seeds[0]) <= set(full)
+    # no reach, no growth
+    (same,) = grow_groups(seeds, pts, low, radius=0.015, max_distance=0.0)
+    np.testing.assert_array_equal(same, seeds[0])
+
+
+def test_a_point_reached_by_two_clusters_joins_the_nearer() -> None:
+    x = np.arange(10) * 0.01  # 10 points 1 cm apart on a line
+    pts = np.column_stack([x, np.zeros_like(x), np.zeros_like(x)])
+    left, right = np.array([0]), np.array([9])
+    grown = grow_groups([left, right], pts, np.arange(10), radius=0.015, max_distance=1.0)
+    assert grown[0].tolist() == [0, 1, 2, 3, 4]
+    assert grown[1].tolist() == [5, 6, 7, 8, 9]
+
+
+def test_growth_rejects_a_bad_radius() -> None:
+    with pytest.raises(ComparisonError):
+        grow_groups([np.array([0])], _column(), np.arange(5), radius=0.0, max_distance=0.1)
+
+
+def test_growth_gives_back_the_base_of_an_added_box() -> None:
+    before = capture(BASE, CAMS, seed=1)
+    new = crate(0.6, 0.8)
+    strict = PRESETS["default"].replace(grow_threshold=None)
+    found = {}
+    for name, options in {"strict": strict, "grown": PRESETS["default"]}.items():
+        res = run(before, [*BASE, new], options=options)
+        (cluster,) = [c for c in res.clusters if c.object_name == "crate" and c.side == "added"]
+        found[name] = cluster
+        assert [(c.type, c.object_name) for c in res.changes] == [("added", "crate")]
+    threshold = res.distances["added"].threshold
+    low = res.distances["added"].grow_threshold
+    assert low is not None and 0 < low < threshold
+    # strict: nothing of the crate below the threshold (its base is near the old floor)
+    assert found["strict"].bbox_min[2] > threshold - 0.01
+    # grown: the base down to about the lower threshold, and more points
+    assert found["grown"].bbox_min[2] < found["strict"].bbox_min[2] - 0.01
+    assert found["grown"].n_points > found["strict"].n_points
+    iou = {k: c.mean_iou["crate"] for k, c in found.items()}
+    assert iou["grown"] > iou["strict"]

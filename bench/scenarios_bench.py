@@ -390,9 +390,15 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
     unidentified = sum(run["ours"]["unidentified"] for run in runs.values())
     true_metric = [r["true_class_metric"] for r in found]
     other_metric = [r["other_class_metric_max"] for r in found]
-    xyz_rows = [r["xyz_error_m"] for r in posed if r.get("xyz_error_m") is not None]
+    # per-axis errors only where they mean something: non-symmetric objects (their rows
+    # carry them) whose pose is not a flip (a flip's Euler angles are ~180° on two axes
+    # and arbitrary on the third; flips are counted on their own)
+    per_axis = [
+        r for r in posed if r.get("xyz_error_m") is not None and r["rotation_error_deg"] <= FLIP_DEG
+    ]
+    xyz_rows = [r["xyz_error_m"] for r in per_axis]
     xyz = np.abs(np.asarray(xyz_rows)) if xyz_rows else np.zeros((0, 3))
-    rpy = [r["rpy_error_deg"] for r in posed if r.get("rpy_error_deg") is not None]
+    rpy = [r["rpy_error_deg"] for r in per_axis if r.get("rpy_error_deg") is not None]
     rpy_abs = np.abs(np.asarray(rpy)) if rpy else np.zeros((0, 3))
 
     def med(a: list[float]) -> float | None:
@@ -412,6 +418,7 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
         "translation_max_m": max(dt) if dt else None,
         "rotation_max_deg": max(dr) if dr else None,
         "flips": sum(1 for v in dr if v > FLIP_DEG),
+        "per_axis_poses": len(per_axis),
         "xyz_abs_median_m": np.median(xyz, axis=0).tolist() if len(xyz) else None,
         "xyz_abs_max_m": xyz.max(axis=0).tolist() if len(xyz) else None,
         "rpy_abs_median_deg": np.median(rpy_abs, axis=0).tolist() if len(rpy_abs) else None,

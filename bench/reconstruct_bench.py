@@ -114,6 +114,11 @@ def main() -> int:
     parser.add_argument("--work", type=Path, default=Path("/tmp/twindelta_bench/work"))
     parser.add_argument("--preset", default="default")
     parser.add_argument("--scenario", default="moved")
+    parser.add_argument(
+        "--cases",
+        default="sfm_markers,known_poses,sfm_markers_after_refined",
+        help="comma-separated subset (the refined case needs sfm_markers' cloud in --work)",
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "reconstruct.json")
     args = parser.parse_args()
     from workers.pipeline.synth import PRESETS, generate, load_true_surfaces
@@ -161,9 +166,14 @@ def main() -> int:
         print(" timings", res.quality["timings_s"])
         return res.cloud_path
 
-    before_cloud = run("sfm_markers", "before", False, None)
-    run("known_poses", "before", True, None)
-    run("sfm_markers_after_refined", "after", False, before_cloud)
+    cases = set(args.cases.split(","))
+    before_cloud = args.work / "sfm_markers" / "cloud.ply"
+    if "sfm_markers" in cases:
+        before_cloud = run("sfm_markers", "before", False, None)
+    if "known_poses" in cases:
+        run("known_poses", "before", True, None)
+    if "sfm_markers_after_refined" in cases:
+        run("sfm_markers_after_refined", "after", False, before_cloud)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(results, indent=1, default=str))
     return 0

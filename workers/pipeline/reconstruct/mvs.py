@@ -8,8 +8,10 @@ scaled by ``options.mvs_scale`` first; depth maps live on that scaled pinhole gr
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -103,19 +105,22 @@ def select_neighbours(
     A stereo partner must share ≥ 30 points, see them under a median triangulation angle ≥
     ``min_triangulation_angle_deg`` and have its optical axis within
     ``max_viewing_angle_deg``; partners are ranked by shared points × angle weight
-    (saturating at 15°). Consistency neighbours are the views sharing the most points.
+    (saturating at 15°), those whose sparse depth range fits in ``max_disparities`` at the
+    pair's baseline first (SGBM finds nothing outside its window). Consistency neighbours
+    are the views sharing the most points.
     """
     n = len(views)
     if visibility.shape != (len(points_env), n):
         raise ShapeError(f"visibility must be ({len(points_env)}, {n}), got {visibility.shape}")
     centres = np.stack([v.env_from_cam[:3, 3] for v in views])
     axes = np.stack([_axis(v) for v in views])
+    focal = [float(v.k_matrix[0, 0]) for v in views]
     vis = visibility.astype(np.float32)
     shared = vis.T @ vis
     stereo: list[tuple[int, ...]] = []
     consist: list[tuple[int, ...]] = []
     for i in range(n):
-        scores: list[tuple[float, int]] = []
+        scores: list[tuple[float, float, int]] = []
         for j in range(n):
             if j == i or shared[i, j] < 30:
                 continue
@@ -134,9 +139,15 @@ def select_neighbours(
             ):
                 continue
             weight = min(tri / 15.0, 1.0) ** 2
-            scores.append((float(shared[i, j]) * weight, j))
+            # a partner whose sparse depth range needs more disparities than SGBM searches
+            # loses the surface outside its window: rank those after every one that fits
+            depth = np.linalg.norm(a, axis=1)
+            baseline_px = focal[i] * float(np.linalg.norm(centres[j] - centres[i]))
+            span = baseline_px * (1.15 / np.percentile(depth, 1) - 0.85 / np.percentile(depth, 99))
+            fits = span + 4.0 <= options.max_disparities
+            scores.append((float(fits), float(shared[i, j]) * weight, j))
         scores.sort(reverse=True)
-        stereo.append(tuple(j for _, j in scores[: options.pairs_per_view]))
+        stereo.append(tuple(j for _, _, j in scores[: options.pairs_per_view]))
         order = [int(j) for j in np.argsort(-shared[i]) if j != i and shared[i, j] >= 10]
         consist.append(tuple(order[: options.consistency_views]))
     return Neighbours(tuple(stereo), tuple(consist))
@@ -146,73 +157,161 @@ def _ceil16(v: float) -> int:
     return int(np.ceil(v / 16.0) * 16)
 
 
-def pair_depth(
+def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int, int]:
+    """SGBM (minDisparity, numDisparities) for a pair from its sparse points' disparities (px).
+
+    The near end is the 99th percentile × 1.15 + 2 px. The window spends the whole budget of
+    ``max_disparities`` below it (down to 0 = infinity), since sparse points under-sample far,
+    weakly textured surfaces (walls, far floor). When the sparse 1–99 % span (× 0.85 / 1.15)
+    is wider than the budget, the window holds the most sparse points instead.
+    """
+    d = np.sort(np.asarray(disparities, dtype=np.float64))
+    near = float(np.percentile(d, 99)) * 1.15 + 2.0
+    far = max(0.0, float(np.percentile(d, 1)) * 0.85 - 2.0)
+    if near - far <= max_disparities:
+        min_disp = max(0, int(np.ceil(near)) - max_disparities)
+        return min_disp, max(16, min(max_disparities, _ceil16(near - min_disp)))
+    starts = np.floor(d).astype(np.int64)
+    inside = np.searchsorted(d, starts + max_disparities, side="left") - np.arange(len(d))
+    min_disp = int(starts[int(np.argmax(inside))])
+    log.info("disparity span %.0f-%.0f px over the budget: window from %d", far, near, min_disp)
+    return max(min_disp, 0), max_disparities
+
+
+def _rectified_pixels(
+    k_matrix: FloatArray, rect: FloatArray, proj: FloatArray, w: int, h: int
+) -> NDArray[np.float32]:
+    """(H, W, 2) rectified pixel of every pixel of an undistorted view (homography P R K⁻¹)."""
+    hom = proj[:, :3] @ rect @ np.linalg.inv(k_matrix)
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    q = u[..., None] * hom[:, 0] + v[..., None] * hom[:, 1] + hom[:, 2]
+    return (q[..., :2] / q[..., 2:3]).astype(np.float32)
+
+
+def _depth_from_disparity(
+    disp: NDArray[np.float32],
+    k_matrix: FloatArray,
+    rect: FloatArray,
+    proj: FloatArray,
+    baseline: float,
+) -> NDArray[np.float32]:
+    """Depth (H, W) float32 metres (0 = unknown) of a view from its rectified disparity map
+    (NaN = unknown); ``rect``/``proj`` are the view's R and P from stereoRectify."""
+    h, w = disp.shape
+    pix = _rectified_pixels(k_matrix, rect, proj, w, h)
+    sampled = cv2.remap(
+        disp,
+        pix[..., 0],
+        pix[..., 1],
+        cv2.INTER_NEAREST,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=float("nan"),
+    )
+    f, cx, cy = float(proj[0, 0]), float(proj[0, 2]), float(proj[1, 2])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z_rect = f * baseline / sampled
+        # camera-frame depth = (Rᵀ x_rect)_z with x_rect = ((u - cx) z / f, (v - cy) z / f, z)
+        depth = z_rect * (
+            (pix[..., 0] - cx) / f * rect[0, 2] + (pix[..., 1] - cy) / f * rect[1, 2] + rect[2, 2]
+        )
+    return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
+
+
+def _right_disparity(disp_left: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The right image's disparity map (NaN = unknown) from the left one of a rectified pair.
+
+    Left pixel x with disparity d lands at x - d in the right image; between two horizontal
+    neighbours on one surface (|Δd| ≤ 1 px) the disparity is interpolated linearly onto the
+    integer right pixels they span, and the nearest surface (largest d) wins.
+    """
+    h, w = disp_left.shape
+    d0, d1 = disp_left[:, :-1], disp_left[:, 1:]
+    ok = np.isfinite(d0) & np.isfinite(d1) & (np.abs(d1 - d0) <= 1.0)
+    ys, xs = np.nonzero(ok)
+    a, b = d0[ys, xs].astype(np.float64), d1[ys, xs].astype(np.float64)
+    s0 = xs - a  # right x of the left pixel x
+    span = 1.0 - (b - a)  # right x of pixel x + 1 minus s0, in [0, 2]
+    out = np.full(h * w, -np.inf)
+    for step in (0, 1):
+        u = np.ceil(s0) + step
+        t = (u - s0) / np.maximum(span, 1e-6)
+        m = (u < s0 + span) & (u >= 0) & (u < w)
+        idx = ys[m] * w + u[m].astype(np.int64)
+        np.maximum.at(out, idx, a[m] + t[m] * (b[m] - a[m]))
+    out[~np.isfinite(out)] = np.nan
+    return out.reshape(h, w).astype(np.float32)
+
+
+def _textureless(gray: NDArray[np.uint8], block: int, min_std: float = 1.0) -> NDArray[np.bool_]:
+    """Pixels whose ``block``² neighbourhood has an intensity std below ``min_std`` grey
+    levels: SGBM's smoothness spreads a neighbour's disparity into them (no evidence)."""
+    g = gray.astype(np.float32)
+    mean = cv2.boxFilter(g, -1, (block, block))
+    sq = cv2.boxFilter(g * g, -1, (block, block))
+    return np.asarray(sq - mean * mean < min_std * min_std, dtype=np.bool_)
+
+
+def pair_depths(
     ref: DenseView,
     src: DenseView,
     points_env: FloatArray,
     options: ReconstructOptions,
-) -> NDArray[np.float32]:
-    """Depth map (H, W) float32 of ``ref`` in metres (0 = unknown) from SGBM on the rectified
-    pair (ref, src). ``points_env`` (N, 3) sparse points seen by both give the disparity range.
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Depth maps (H, W) float32 in metres (0 = unknown) of ``ref`` and of ``src`` from one
+    SGBM run on the rectified pair; ``src``'s map is the ref disparity warped to it.
+    ``points_env`` (N, 3) sparse points seen by both give the disparity range.
     """
     w, h = ref.size
+    if src.size != ref.size:
+        raise ShapeError("stereo pairs must share an image size at MVS scale")
     src_from_ref = src.cam_from_env @ ref.env_from_cam
     rot = np.ascontiguousarray(src_from_ref[:3, :3])
     trans = np.ascontiguousarray(src_from_ref[:3, 3].reshape(3, 1))
-    if src.size != ref.size:
-        raise ShapeError("stereo pairs must share an image size at MVS scale")
-    r1, r2, p1, p2, _, _, _ = cv2.stereoRectify(
-        ref.k_matrix,
-        np.zeros(5),
-        src.k_matrix,
-        np.zeros(5),
-        (w, h),
-        rot,
-        trans,
-        flags=cv2.CALIB_ZERO_DISPARITY,
-        alpha=-1,
+    r1, r2, p1, p2, _, _, _ = (
+        np.asarray(m, np.float64)
+        for m in cv2.stereoRectify(
+            ref.k_matrix,
+            np.zeros(5),
+            src.k_matrix,
+            np.zeros(5),
+            (w, h),
+            rot,
+            trans,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=-1,
+        )
     )
     vertical = abs(p2[1, 3]) > abs(p2[0, 3])
     tx = p2[1, 3] if vertical else p2[0, 3]
     flip = tx > 0  # src lies left (or above) of ref in the rectified frame
     f = float(p1[0, 0])
     baseline = abs(float(tx)) / f
-    cx, cy = float(p1[0, 2]), float(p1[1, 2])
+    empty = np.zeros((h, w), np.float32)
 
     # disparity range from the sparse points in the rectified ref frame
     p_cam = points_env @ ref.cam_from_env[:3, :3].T + ref.cam_from_env[:3, 3]
     z_rect = (p_cam @ r1.T)[:, 2]
     z_rect = z_rect[z_rect > 1e-6]
     if len(z_rect) < 5:
-        return np.zeros((h, w), np.float32)
-    d = f * baseline / z_rect
-    dmin = max(0.0, float(np.percentile(d, 1)) * 0.85 - 2.0)
-    dmax = float(np.percentile(d, 99)) * 1.15 + 2.0
-    min_disp = int(np.floor(dmin))
-    num = max(16, _ceil16(dmax - min_disp))
-    if num > options.max_disparities:
-        log.info("pair %s-%s: disparity range %d capped", ref.name, src.name, num)
-        num = options.max_disparities
+        return empty, empty.copy()
+    min_disp, num = disparity_window(f * baseline / z_rect, options.max_disparities)
 
-    def canon(img: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    def canon(img: NDArray[Any]) -> NDArray[Any]:
         out = img.T if vertical else img
         return np.ascontiguousarray(out[:, ::-1] if flip else out)
 
-    gray = [cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY) for v in (ref, src)]
-    maps = [
-        cv2.initUndistortRectifyMap(v.k_matrix, np.zeros(5), r, p, (w, h), cv2.CV_32FC1)
-        for v, r, p in ((ref, r1, p1), (src, r2, p2))
-    ]
-    rect = [
-        canon(np.asarray(cv2.remap(g, m[0], m[1], cv2.INTER_LINEAR), np.uint8))
-        for g, m in zip(gray, maps, strict=True)
-    ]
-    valid_src = canon(
-        np.asarray(
-            cv2.remap(np.full((h, w), 255, np.uint8), maps[0][0], maps[0][1], cv2.INTER_NEAREST),
-            np.uint8,
-        )
-    )
+    def uncanon(img: NDArray[Any]) -> NDArray[Any]:
+        out = img[:, ::-1] if flip else img
+        return np.ascontiguousarray(out.T if vertical else out)
+
+    rect: list[NDArray[np.uint8]] = []
+    valid: list[NDArray[np.bool_]] = []
+    for v, r, p in ((ref, r1, p1), (src, r2, p2)):
+        m1, m2 = cv2.initUndistortRectifyMap(v.k_matrix, np.zeros(5), r, p, (w, h), cv2.CV_32FC1)
+        gray = cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY)
+        rect.append(canon(np.asarray(cv2.remap(gray, m1, m2, cv2.INTER_LINEAR), np.uint8)))
+        inside = cv2.remap(np.full((h, w), 255, np.uint8), m1, m2, cv2.INTER_NEAREST)
+        valid.append(canon(np.asarray(inside, np.uint8)) > 0)
     bs = options.sgbm_block_size
     sgbm = cv2.StereoSGBM.create(
         minDisparity=min_disp,
@@ -227,33 +326,13 @@ def pair_depth(
         mode=_SGBM_MODES[options.sgbm_mode],
     )
     disp = sgbm.compute(rect[0], rect[1]).astype(np.float32) / 16.0
-    disp[(disp <= max(min_disp, 0) + 0.5) | (valid_src == 0)] = np.nan
-    if flip:
-        disp = disp[:, ::-1]
-    if vertical:
-        disp = disp.T
-    disp = np.ascontiguousarray(disp)
-
-    # sample the rectified disparity at every ref pixel
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    pix = np.stack([u.ravel(), v.ravel()], axis=1).reshape(-1, 1, 2)
-    rect_pix = cv2.undistortPoints(pix, ref.k_matrix, np.zeros(5), R=r1, P=p1).reshape(h, w, 2)
-    sampled = cv2.remap(
-        disp,
-        rect_pix[..., 0].astype(np.float32),
-        rect_pix[..., 1].astype(np.float32),
-        cv2.INTER_NEAREST,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=float("nan"),
+    disp[(disp <= max(min_disp, 0) + 0.5) | ~valid[0] | _textureless(rect[0], bs)] = np.nan
+    disp_src = _right_disparity(disp)
+    disp_src[~valid[1] | _textureless(rect[1], bs)] = np.nan
+    return (
+        _depth_from_disparity(uncanon(disp), ref.k_matrix, r1, p1, baseline),
+        _depth_from_disparity(uncanon(disp_src), src.k_matrix, r2, p2, baseline),
     )
-    with np.errstate(divide="ignore", invalid="ignore"):
-        zr = f * baseline / sampled
-        x_rect = np.stack(
-            [(rect_pix[..., 0] - cx) * zr / f, (rect_pix[..., 1] - cy) * zr / f, zr], axis=-1
-        )
-        depth = (x_rect @ r1)[..., 2]  # (R1ᵀ x)_z, row-vector form
-    depth = np.where(np.isfinite(depth) & (depth > 0), depth, 0.0)
-    return depth.astype(np.float32)
 
 
 def compute_depth_maps(
@@ -264,25 +343,33 @@ def compute_depth_maps(
     options: ReconstructOptions,
     progress: Progress = no_progress,
 ) -> list[NDArray[np.float32]]:
-    """One (H, W) float32 depth map per view (metres, 0 = unknown) from its stereo partners;
-    with several partners, the per-pixel median of the valid estimates."""
+    """One (H, W) float32 depth map per view (metres, 0 = unknown).
+
+    Every stereo partnership is one undirected pair and one SGBM run, which gives depth to
+    both of its views; a view in several pairs gets the per-pixel median of the valid
+    estimates.
+    """
+    pairs = sorted({(min(i, j), max(i, j)) for i, js in enumerate(neighbours.stereo) for j in js})
+    estimates: list[list[NDArray[np.float32]]] = [[] for _ in views]
+    for n, (i, j) in enumerate(pairs):
+        mask = visibility[:, i] & visibility[:, j]
+        depth_i, depth_j = pair_depths(views[i], views[j], points_env[mask], options)
+        estimates[i].append(depth_i)
+        estimates[j].append(depth_j)
+        progress("stereo", (n + 1) / len(pairs))
     out = []
-    for i, view in enumerate(views):
-        estimates = []
-        for j in neighbours.stereo[i]:
-            mask = visibility[:, i] & visibility[:, j]
-            estimates.append(pair_depth(view, views[j], points_env[mask], options))
-        if not estimates:
+    for view, est in zip(views, estimates, strict=True):
+        if not est:
             out.append(np.zeros(view.image.shape[:2], np.float32))
-        elif len(estimates) == 1:
-            out.append(estimates[0])
+        elif len(est) == 1:
+            out.append(est[0])
         else:
-            stack = np.stack(estimates)
+            stack = np.stack(est)
             stack[stack <= 0] = np.nan
-            with np.errstate(all="ignore"):
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels → NaN
                 med = np.nanmedian(stack, axis=0)
             out.append(np.nan_to_num(med, nan=0.0).astype(np.float32))
-        progress("stereo", (i + 1) / len(views))
     return out
 
 

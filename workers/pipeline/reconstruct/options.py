@@ -19,8 +19,10 @@ class ReconstructOptions:
     neighbours, quadratic) above. Multi-view stereo runs at ``mvs_scale`` of the image size,
     with ``pairs_per_view`` stereo partners per view; a depth survives when it agrees within
     ``consistency_rel_tol`` (relative) with ≥ ``consistency_min_views`` of the view's
-    ``consistency_views`` nearest neighbours. Fusion voxel size ``voxel_size_m``; ICP
-    refinement against the previous snapshot with shrinking ``icp_max_distances_m``.
+    ``consistency_views`` nearest neighbours. Each stereo pair is one SGBM run that gives
+    depth to both its views. Fusion voxel size ``voxel_size_m``, then optional statistical
+    outlier removal (``sor_neighbours`` > 0); ICP refinement against the previous snapshot
+    with shrinking ``icp_max_distances_m``.
     """
 
     preset: str = "default"
@@ -52,7 +54,10 @@ class ReconstructOptions:
     point_stride: int = 2
     # fusion
     voxel_size_m: float = 0.0025
-    sor_neighbours: int = 16
+    # statistical outlier removal after the voxel grid (0 = off). Off by default: on the
+    # generated 30-view room it removed 5 % of the work area's surface coverage and 20 % of
+    # the whole room's for 0.6 mm of p95 error, at 3 s of 2-core time
+    sor_neighbours: int = 0
     sor_std_ratio: float = 2.0
     # alignment to the previous snapshot
     icp_max_distances_m: tuple[float, ...] = (0.02, 0.01, 0.005)

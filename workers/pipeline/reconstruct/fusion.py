@@ -36,20 +36,47 @@ def from_o3d(pcd: o3d.geometry.PointCloud) -> tuple[FloatArray, NDArray[np.uint8
     return pts, cols
 
 
+def voxel_average(
+    points: FloatArray, colors_rgb: NDArray[np.uint8], voxel_m: float
+) -> tuple[FloatArray, NDArray[np.uint8]]:
+    """Mean point and mean colour of every occupied ``voxel_m`` cube (grid at the origin).
+
+    (N, 3) metres and (N, 3) uint8 in, (M, 3) and (M, 3) out, ordered by voxel. Does what
+    Open3D's ``voxel_down_sample`` does, several times faster on a million points.
+    """
+    pts = as_points(points)
+    if len(pts) == 0:
+        return pts.reshape(0, 3), np.zeros((0, 3), np.uint8)
+    keys = np.floor(pts / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    order = np.argsort(flat, kind="stable")
+    flat = flat[order]
+    start = np.flatnonzero(np.concatenate([[True], flat[1:] != flat[:-1]]))
+    counts = np.diff(np.append(start, len(flat)))[:, None]
+    mean = np.add.reduceat(pts[order], start, axis=0) / counts
+    cols = np.add.reduceat(np.asarray(colors_rgb, np.float64)[order], start, axis=0) / counts
+    return mean, np.clip(np.rint(cols), 0, 255).astype(np.uint8)
+
+
 def fuse_points(
     points: FloatArray, colors_rgb: NDArray[np.uint8], options: ReconstructOptions
 ) -> tuple[FloatArray, NDArray[np.uint8]]:
-    """Voxel-average at ``voxel_size_m`` then statistical outlier removal.
+    """Voxel-average at ``voxel_size_m``, then statistical outlier removal when
+    ``sor_neighbours`` > 0.
 
     (N, 3) metres and (N, 3) uint8 in, (M, 3) and (M, 3) out. Raises
     DenseReconstructionFailed when nothing is left.
     """
-    pcd = to_o3d(points, colors_rgb)
+    pts, cols = np.asarray(points, np.float64), np.asarray(colors_rgb, np.uint8)
     if options.voxel_size_m > 0:
-        pcd = pcd.voxel_down_sample(options.voxel_size_m)
-    if options.sor_neighbours > 0 and len(pcd.points) > options.sor_neighbours:
-        pcd, _ = pcd.remove_statistical_outlier(options.sor_neighbours, options.sor_std_ratio)
-    pts, cols = from_o3d(pcd)
+        pts, cols = voxel_average(pts, cols, options.voxel_size_m)
+    if options.sor_neighbours > 0 and len(pts) > options.sor_neighbours:
+        pcd, _ = to_o3d(pts, cols).remove_statistical_outlier(
+            options.sor_neighbours, options.sor_std_ratio
+        )
+        pts, cols = from_o3d(pcd)
     if len(pts) == 0:
         raise DenseReconstructionFailed("the fused cloud is empty after outlier removal")
     return pts, cols

@@ -40,7 +40,7 @@ def triangulate_known(
     Matches keep only pairs within 2 px of their epipolar line, positive depth in both views
     and reprojection error ≤ 2 px. Each point is seen by exactly the two views of its pair.
     """
-    orb = cv2.ORB.create(nfeatures=1500, fastThreshold=10)
+    orb = cv2.ORB.create(nfeatures=1000, fastThreshold=10)
     feats = []
     for v in views:
         gray = cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY)

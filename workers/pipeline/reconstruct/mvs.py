@@ -8,7 +8,6 @@ scaled by ``options.mvs_scale`` first; depth maps live on that scaled pinhole gr
 from __future__ import annotations
 
 import logging
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,16 +177,6 @@ def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int
     return max(min_disp, 0), max_disparities
 
 
-def _rectified_pixels(
-    k_matrix: FloatArray, rect: FloatArray, proj: FloatArray, w: int, h: int
-) -> NDArray[np.float32]:
-    """(H, W, 2) rectified pixel of every pixel of an undistorted view (homography P R K⁻¹)."""
-    hom = proj[:, :3] @ rect @ np.linalg.inv(k_matrix)
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    q = u[..., None] * hom[:, 0] + v[..., None] * hom[:, 1] + hom[:, 2]
-    return (q[..., :2] / q[..., 2:3]).astype(np.float32)
-
-
 def _depth_from_disparity(
     disp: NDArray[np.float32],
     k_matrix: FloatArray,
@@ -196,24 +185,30 @@ def _depth_from_disparity(
     baseline: float,
 ) -> NDArray[np.float32]:
     """Depth (H, W) float32 metres (0 = unknown) of a view from its rectified disparity map
-    (NaN = unknown); ``rect``/``proj`` are the view's R and P from stereoRectify."""
+    (NaN = unknown); ``rect``/``proj`` are the view's R and P from stereoRectify.
+
+    Pixel x maps to the rectified pixel P R K⁻¹ x (a homography); a point on the ray of x at
+    camera depth λ has rectified depth λ (R K⁻¹ x)_z, so λ = (f b / d) / (R K⁻¹ x)_z.
+    """
     h, w = disp.shape
-    pix = _rectified_pixels(k_matrix, rect, proj, w, h)
-    sampled = cv2.remap(
+    ray_rect = rect @ np.linalg.inv(k_matrix)
+    rect_from_pix = proj[:, :3] @ ray_rect
+    sampled = cv2.warpPerspective(
         disp,
-        pix[..., 0],
-        pix[..., 1],
-        cv2.INTER_NEAREST,
+        rect_from_pix,
+        (w, h),
+        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
         borderMode=cv2.BORDER_CONSTANT,
         borderValue=float("nan"),
     )
-    f, cx, cy = float(proj[0, 0]), float(proj[0, 2]), float(proj[1, 2])
+    a, b, c = ray_rect[2]
+    z_factor = (
+        a * np.arange(w, dtype=np.float32)[None, :]
+        + b * np.arange(h, dtype=np.float32)[:, None]
+        + c
+    )
     with np.errstate(divide="ignore", invalid="ignore"):
-        z_rect = f * baseline / sampled
-        # camera-frame depth = (Rᵀ x_rect)_z with x_rect = ((u - cx) z / f, (v - cy) z / f, z)
-        depth = z_rect * (
-            (pix[..., 0] - cx) / f * rect[0, 2] + (pix[..., 1] - cy) / f * rect[1, 2] + rect[2, 2]
-        )
+        depth = np.float32(float(proj[0, 0]) * baseline) / (sampled * z_factor)
     return np.where(np.isfinite(depth) & (depth > 0), depth, 0.0).astype(np.float32)
 
 
@@ -364,13 +359,18 @@ def compute_depth_maps(
         elif len(est) == 1:
             out.append(est[0])
         else:
-            stack = np.stack(est)
-            stack[stack <= 0] = np.nan
-            with np.errstate(all="ignore"), warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels → NaN
-                med = np.nanmedian(stack, axis=0)
-            out.append(np.nan_to_num(med, nan=0.0).astype(np.float32))
+            out.append(_median_of_valid(np.stack(est)))
     return out
+
+
+def _median_of_valid(stack: NDArray[np.float32]) -> NDArray[np.float32]:
+    """Per-pixel median of the valid (> 0) values of a (K, H, W) stack; 0 where none is."""
+    valid = stack > 0
+    n = valid.sum(axis=0)
+    srt = np.sort(np.where(valid, stack, np.inf), axis=0)
+    lo = np.take_along_axis(srt, (np.maximum(n - 1, 0) // 2)[None], axis=0)[0]
+    hi = np.take_along_axis(srt, (n // 2)[None], axis=0)[0]
+    return np.where(n > 0, 0.5 * (lo + hi), 0.0).astype(np.float32)
 
 
 def backproject(
@@ -390,21 +390,22 @@ def backproject(
 
 
 def _sample_depth(
-    view: DenseView, depth: NDArray[np.float32], points_env: FloatArray
-) -> tuple[FloatArray, FloatArray, NDArray[np.int64], NDArray[np.int64]]:
-    """Project points into ``view``: (their depth, the map's depth there, px x, px y)."""
-    p_cam = points_env @ view.cam_from_env[:3, :3].T + view.cam_from_env[:3, 3]
+    view: DenseView, depth: NDArray[np.float32], points_env: NDArray[np.float32]
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Project (N, 3) env points into ``view``: (their depth, the map's depth at the nearest
+    pixel, 0 outside the image or behind the camera), both (N,) float32 metres."""
+    cam_from_env = view.cam_from_env.astype(np.float32)
+    p_cam = points_env @ cam_from_env[:3, :3].T + cam_from_env[:3, 3]
     z = p_cam[:, 2]
     k = view.k_matrix
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.rint(k[0, 0] * p_cam[:, 0] / z + k[0, 2])
-        v = np.rint(k[1, 1] * p_cam[:, 1] / z + k[1, 2])
+        u = np.rint(np.float32(k[0, 0]) * p_cam[:, 0] / z + np.float32(k[0, 2]))
+        v = np.rint(np.float32(k[1, 1]) * p_cam[:, 1] / z + np.float32(k[1, 2]))
     h, w = depth.shape
     inside = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    ui = np.where(inside, u, 0).astype(np.int64)
-    vi = np.where(inside, v, 0).astype(np.int64)
-    d = np.where(inside, depth[vi, ui], 0.0).astype(np.float64)
-    return z, d, ui, vi
+    d = np.zeros(len(z), np.float32)
+    d[inside] = depth[v[inside].astype(np.int64), u[inside].astype(np.int64)]
+    return z, d
 
 
 def consistent_points(
@@ -430,21 +431,19 @@ def consistent_points(
         pts, pix = backproject(view, depths[i], options.point_stride)
         if len(pts) == 0:
             continue
+        pts32 = pts.astype(np.float32)
         support = np.zeros(len(pts), np.int32)
         acc = pts.copy()
         for j in neighbours.consistency[i]:
-            z, d, _, _ = _sample_depth(views[j], depths[j], pts)
+            z, d = _sample_depth(views[j], depths[j], pts32)
             ok = (d > 0) & (np.abs(d - z) <= tol * z)
             if not ok.any():
                 continue
             support += ok
-            # back-project the neighbour's own measurement along the same ray of view j
-            scale = np.where(ok, d / np.where(z > 0, z, 1.0), 0.0)
-            p_cam_j = pts @ views[j].cam_from_env[:3, :3].T + views[j].cam_from_env[:3, 3]
-            q_env = (p_cam_j * scale[:, None]) @ views[j].env_from_cam[:3, :3].T + views[
-                j
-            ].env_from_cam[:3, 3]
-            acc[ok] += q_env[ok]
+            # the neighbour's own measurement on the same ray of view j: c + (p - c) d / z
+            centre = views[j].env_from_cam[:3, 3]
+            scale = (d[ok] / z[ok]).astype(np.float64)
+            acc[ok] += centre + (pts[ok] - centre) * scale[:, None]
         keep = support >= options.consistency_min_views
         if keep.any():
             all_pts.append(acc[keep] / (1.0 + support[keep, None]))

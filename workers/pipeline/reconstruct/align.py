@@ -13,7 +13,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from workers.pipeline.geometry import Mat4, as_points, rotation_angle_deg
-from workers.pipeline.reconstruct.fusion import to_o3d
+from workers.pipeline.reconstruct.fusion import to_o3d, voxel_average
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
 
@@ -54,16 +54,15 @@ def refine_alignment(
     options: ReconstructOptions,
 ) -> AlignmentResult:
     """Robust ICP of (N, 3) ``new_points`` onto (M, 3) ``reference_points`` (env frame, m)."""
-    src = to_o3d(as_points(new_points, "new_points")).voxel_down_sample(options.icp_voxel_m)
+    src = to_o3d(voxel_average(as_points(new_points, "new_points"), options.icp_voxel_m)[0])
     if len(src.points) > options.icp_max_source_points:
         # ICP's cost follows the source; a seeded subsample of it against the full-density
         # target keeps the accuracy (every residual is still to the finest surface).
         rng = np.random.default_rng(options.seed)
         keep = rng.choice(len(src.points), options.icp_max_source_points, replace=False)
         src = src.select_by_index(np.sort(keep).tolist())
-    dst = to_o3d(as_points(reference_points, "reference_points")).voxel_down_sample(
-        options.icp_voxel_m
-    )
+    ref = as_points(reference_points, "reference_points")
+    dst = to_o3d(voxel_average(ref, options.icp_voxel_m)[0])
     # 12 nearest neighbours on the voxel grid: as good a plane for point-to-plane ICP as a
     # 30-neighbour radius search and about 3× faster (measured on a 490k-point room).
     dst.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=12))

@@ -61,8 +61,10 @@ class ReconstructOptions:
     sor_std_ratio: float = 2.0
     # alignment to the previous snapshot
     icp_max_distances_m: tuple[float, ...] = (0.02, 0.01, 0.005)
-    icp_voxel_m: float = 0.004
-    icp_max_source_points: int = 60_000
+    # 8 mm voxels and 20 k source points: 3.3 s instead of 26 s (load 8) on two 0.8 M-point
+    # room clouds, inlier RMS 3.4 mm vs 2.8 mm; the fit is set by the stable surfaces' planes
+    icp_voxel_m: float = 0.008
+    icp_max_source_points: int = 20_000
     max_alignment_correction_m: float = 0.05
     max_alignment_correction_deg: float = 3.0
     min_alignment_fitness: float = 0.3

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -35,12 +37,24 @@ def _scene(meshes: dict[str, o3d.geometry.TriangleMesh]) -> o3d.t.geometry.Rayca
     return scene
 
 
+@dataclass(frozen=True)
+class VisibleSurface:
+    """True-surface samples seen unoccluded by ≥ 2 views: (N, 3) points and unit normals (env,
+    m), (N, V) which views see them, and the (V, 4, 4) env_from_cam and focal length (px)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    seen: np.ndarray
+    env_from_cams: np.ndarray
+    focal_px: float
+
+
 def visible_surface_samples(
     meshes: dict[str, o3d.geometry.TriangleMesh],
     cameras: dict[str, Any],
     n: int = 300_000,
     min_views: int = 2,
-) -> np.ndarray:
+) -> VisibleSurface:
     """Points sampled on the true surface (area-uniform) seen unoccluded by ≥ min_views."""
     merged = o3d.geometry.TriangleMesh()
     for m in meshes.values():
@@ -51,9 +65,9 @@ def visible_surface_samples(
     intr = cameras["intrinsics"]
     fx, fy, cx, cy = intr["params"][:4]
     w, h = intr["width"], intr["height"]
-    seen = np.zeros(len(pts), np.int32)
-    for pose in cameras["poses"].values():
-        env_from_cam = np.asarray(pose)
+    poses = np.stack([np.asarray(p, np.float64) for p in cameras["poses"].values()])
+    seen = np.zeros((len(pts), len(poses)), bool)
+    for k, env_from_cam in enumerate(poses):
         cam_from_env = np.linalg.inv(env_from_cam)
         pc = pts @ cam_from_env[:3, :3].T + cam_from_env[:3, 3]
         z = pc[:, 2]
@@ -65,23 +79,78 @@ def visible_surface_samples(
         dist = np.linalg.norm(d, axis=1)
         rays = np.concatenate([np.repeat(centre[None], len(pts), 0), d / dist[:, None]], 1)
         hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
-        seen += inside & (hit >= dist - 0.002)
-    return np.asarray(pts[seen >= min_views])
+        seen[:, k] = inside & (hit >= dist - 0.002)
+    keep = seen.sum(axis=1) >= min_views
+    closest = scene.compute_closest_points(o3d.core.Tensor(pts[keep].astype(np.float32)))
+    normals = closest["primitive_normals"].numpy().astype(np.float64)
+    return VisibleSurface(pts[keep], normals, seen[keep], poses, float(fx))
+
+
+def stereo_reachable(
+    surface: VisibleSurface,
+    matching_error_px: float = 0.25,
+    max_error_m: float = 0.01,
+    max_axis_angle_deg: float = 45.0,
+    min_elevation_deg: float = 15.0,
+) -> np.ndarray:
+    """(N,) bool: samples that some pair of views can triangulate to ``max_error_m``.
+
+    A pair qualifies when both views see the sample at ≥ ``min_elevation_deg`` above the
+    surface (block matching fails at grazing incidence) with optical axes within
+    ``max_axis_angle_deg`` (the MVS stage's partner limit); a matching error of
+    ``matching_error_px`` in view j moves the point along view i's ray by
+    d_j · (σ / f) / sin θ (θ: the rays' angle at the sample, d_j: its distance from j).
+    """
+    pts, seen = surface.points, surface.seen
+    centres = surface.env_from_cams[:, :3, 3]
+    axes = surface.env_from_cams[:, :3, 2]
+    rays = pts[:, None, :] - centres[None]  # (N, V, 3)
+    dist = np.linalg.norm(rays, axis=2)
+    rays /= dist[..., None]
+    elevation_ok = np.abs(np.einsum("nvk,nk->nv", rays, surface.normals)) >= np.sin(
+        np.radians(min_elevation_deg)
+    )
+    usable = seen & elevation_ok
+    best = np.full(len(pts), np.inf)
+    cos_axes = axes @ axes.T
+    for i in range(len(centres)):
+        for j in range(len(centres)):
+            if i == j or cos_axes[i, j] < np.cos(np.radians(max_axis_angle_deg)):
+                continue
+            m = usable[:, i] & usable[:, j]
+            sin = np.linalg.norm(np.cross(rays[m, i], rays[m, j]), axis=1)
+            err = dist[m, j] * (matching_error_px / surface.focal_px) / np.maximum(sin, 1e-9)
+            best[m] = np.minimum(best[m], err)
+    return np.asarray(best <= max_error_m)
 
 
 def cloud_metrics(
     cloud: np.ndarray,
     meshes: dict[str, o3d.geometry.TriangleMesh],
-    visible: np.ndarray,
+    surface: VisibleSurface,
     work_radius_m: float = 1.5,
-) -> dict[str, float]:
+) -> dict[str, Any]:
     """Distances of the cloud to the true surface; completeness over the visible surface,
-    all of it and within the working area (horizontal radius ≤ work_radius_m, inside the
-    camera ring, where the objects stand)."""
+    all of it, within the working area (horizontal radius ≤ work_radius_m, inside the
+    camera ring, where the objects stand) and over its stereo-reachable part
+    (:func:`stereo_reachable`, a second metric beside the first, not a replacement);
+    completeness by the distance of the nearest camera that sees the sample."""
+    visible = surface.points
     dist = _scene(meshes).compute_distance(o3d.core.Tensor(cloud.astype(np.float32))).numpy()
     nn, _ = cKDTree(cloud).query(visible, k=1, workers=2)
     inner = np.linalg.norm(visible[:, :2], axis=1) <= work_radius_m
     in_cloud = np.linalg.norm(cloud[:, :2], axis=1) <= work_radius_m
+    reach = stereo_reachable(surface)
+    centres = surface.env_from_cams[:, :3, 3]
+    cam_dist = np.linalg.norm(visible[:, None, :] - centres[None], axis=2)
+    nearest = np.where(surface.seen, cam_dist, np.inf).min(axis=1)
+    bands = {}
+    for lo, hi in ((0.0, 1.5), (1.5, 2.5), (2.5, 3.5), (3.5, 4.5), (4.5, 99.0)):
+        m = (nearest >= lo) & (nearest < hi)
+        bands[f"{lo}-{hi}"] = {
+            "share": float(m.mean()),
+            "completeness_1cm": float(np.mean(nn[m] < 0.01)) if m.any() else None,
+        }
     return {
         "work_radius_m": work_radius_m,
         "completeness_1cm_work_area": float(np.mean(nn[inner] < 0.01)),
@@ -94,6 +163,9 @@ def cloud_metrics(
         "distance_mean_m": float(np.mean(dist)),
         "completeness_1cm": float(np.mean(nn < 0.01)),
         "completeness_5mm": float(np.mean(nn < 0.005)),
+        "reachable_share_of_visible": float(reach.mean()),
+        "completeness_1cm_reachable": float(np.mean(nn[reach] < 0.01)),
+        "completeness_1cm_by_nearest_camera_m": bands,
     }
 
 
@@ -150,6 +222,7 @@ def main() -> int:
         import shutil
 
         shutil.rmtree(work, ignore_errors=True)
+        load_before = os.getloadavg()[0]
         res = reconstruct(
             args.scene / capture / "images", work, options, cams, reference, reference_cloud
         )
@@ -157,6 +230,7 @@ def main() -> int:
         m = load_true_surfaces(args.scene, capture)
         vis = visible if capture == "before" else visible_surface_samples(m, raw)
         case = {
+            "load_average_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
             "quality": res.quality,
             **camera_metrics(res.views, raw),
             **cloud_metrics(cloud, m, vis),

@@ -51,7 +51,7 @@ from workers.pipeline.symmetry import (
     spec_to_json,
 )
 
-FORMAT_VERSION = 3
+FORMAT_VERSION = 4  # 4: texture colours read the right way up
 UNITS_TO_M: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 MESH_SUFFIXES = {".ply", ".obj", ".stl", ".glb", ".gltf", ".off"}
 CLOUD_SUFFIXES = {".pcd", ".ply", ".xyz", ".pts"}
@@ -160,7 +160,9 @@ def _texture_colors(
         u = np.mod(uv[sel, 0], 1.0)
         v = np.mod(uv[sel, 1], 1.0)
         col = np.clip((u * w).astype(np.int64), 0, w - 1)
-        row = np.clip(((1.0 - v) * h).astype(np.int64), 0, h - 1)
+        # Open3D hands the texture back bottom-up (row 0 is the file's last row; checked
+        # against the PNG), so the file's row (1 − v)·h is this array's row v·h
+        row = np.clip((v * h).astype(np.int64), 0, h - 1)
         pix = img[row, col, :3].astype(np.float64)
         out[sel] = pix / (
             65535.0 if img.dtype == np.uint16 else 255.0 if img.dtype == np.uint8 else 1.0

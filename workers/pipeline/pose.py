@@ -23,7 +23,9 @@ Input: a :class:`~workers.pipeline.model.PreparedModel` (object frame) and the s
    combines them with :class:`PoseOptions` thresholds. While not verified, steps 2–4 run
    again with new seeds, up to ``max_rounds`` rounds;
 5. symmetry: among the equivalent poses ``env_from_object @ S`` one canonical pose is
-   published — closest to a previous pose if given, else the one whose object up axis
+   published — the one whose model colours match the scene's clearly best when colour
+   breaks a discrete symmetry (a label), else closest to a previous pose if given, else
+   the one whose object up axis
    agrees best with the environment up (+z), ties broken by the smallest rotation — so a
    symmetric object is never published upside down because the fit is equally good.
 
@@ -36,6 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -74,12 +77,20 @@ class PoseOptions:
     ``colored_icp`` is off by default: on YCB partial views with exact texture colours it
     was accepted by the fit checks yet moved the rotation from 0.1–0.2° to about 1° off.
 
+    ``colour_margin``: a symmetric object whose colours break its symmetry (a label) is
+    published in the equivalent pose whose model colours correlate best with the scene's,
+    when that correlation beats every other equivalent's by this margin.
+
     Verification: ``verified`` needs ``fitness ≥ min_fitness`` (model points within
     ``inlier_voxels·v`` of the scene, at most ``max_inlier_distance_m`` — the scan's noise,
     not the object's size, bounds a real inlier; a single view sees 30–60 % of an object),
     ``inlier_rmse ≤ max_rmse_voxels·v`` and, when cluster points are given,
-    ``cluster_coverage ≥ min_cluster_coverage`` (the share of cluster points within
-    ``coverage_voxels·v`` of the posed model: the change must be explained by the object),
+    ``cluster_coverage ≥ min_cluster_coverage`` (the share of cluster points within a
+    tolerance of the posed model: the change must be explained by the object; the
+    tolerance is 3σ of the cluster's own scatter about the posed model, σ = 1.4826 × the
+    median distance, clipped to ``coverage_voxels·v`` … ``max_coverage_voxels·v`` and
+    ``max_inlier_distance_m`` — a reconstructed cloud scatters 2–4 mm about the true surface,
+    and a cluster that includes something else leaves it uncovered by centimetres),
     and no *distinct* candidate (modulo symmetry) scoring above ``max_runner_up_ratio`` ×
     the best: two different poses that explain the data about equally well (a wall sliding
     along a wall) are not a verified pose.
@@ -106,7 +117,9 @@ class PoseOptions:
     min_fitness: float = 0.25
     max_rmse_voxels: float = 0.3
     coverage_voxels: float = 0.5
+    max_coverage_voxels: float = 1.5
     min_cluster_coverage: float = 0.85
+    colour_margin: float = 0.1
     max_runner_up_ratio: float = 0.85
     seed: int = 0
 
@@ -184,7 +197,7 @@ class PoseResult:
     (metres) into the environment frame. ``equivalent_poses``: other poses that fit equally
     well by symmetry (continuous symmetry: 8 samples per discrete element; the axis is
     ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
-    "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
+    "colour", "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
     ``alternatives``: the other refined hypotheses as (fine score, env_from_object), best
     first — for a caller whose re-projection check rejects the chosen pose."""
 
@@ -308,6 +321,35 @@ def _orient_scene_normals(
     return out
 
 
+def _cluster_coverage(cluster: Points, posed_model: Points, v: float, o: PoseOptions) -> float:
+    """Share of (K, 3) cluster points within the noise-scaled tolerance of the (N, 3) posed
+    model points (see :class:`PoseOptions`)."""
+    hi = min(o.max_coverage_voxels * v, o.max_inlier_distance_m)
+    d, _ = cKDTree(posed_model).query(cluster, distance_upper_bound=hi)
+    d_med = float(np.median(np.where(np.isfinite(d), d, hi)))
+    tol = float(np.clip(3.0 * 1.4826 * d_med, min(o.coverage_voxels * v, hi), hi))
+    return float(np.mean(d <= tol))
+
+
+def _colour_agreement(
+    model: PreparedModel, env_from_object: Mat4, target: _Target, dist: float
+) -> float:
+    """Correlation (channel means removed) of the model's colours with the colours of the
+    nearest scene points within ``dist`` metres; NaN without colours or with < 100 pairs."""
+    if model.colors is None or target.colors is None:
+        return float("nan")
+    d, idx = target.tree.query(
+        transform_points(env_from_object, model.points), distance_upper_bound=dist
+    )
+    ok = np.isfinite(d)
+    if ok.sum() < 100:
+        return float("nan")
+    a = model.colors[ok] - model.colors[ok].mean(axis=0)
+    b = target.colors[idx[ok]] - target.colors[idx[ok]].mean(axis=0)
+    den = float(np.sqrt((a * a).sum() * (b * b).sum()))
+    return float((a * b).sum() / den) if den > 0 else float("nan")
+
+
 def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     d, _ = tree.query(points, distance_upper_bound=tau)
     d = np.where(np.isfinite(d), d, tau)
@@ -320,6 +362,7 @@ class _Target:
     def __init__(self, pcd: o3d.geometry.PointCloud) -> None:
         self.points = np.asarray(pcd.points, dtype=np.float64).copy()
         self.normals = _normalised(np.asarray(pcd.normals, dtype=np.float64))
+        self.colors = np.asarray(pcd.colors, dtype=np.float64).copy() if pcd.has_colors() else None
         self.tree = cKDTree(self.points)
 
 
@@ -375,10 +418,26 @@ def _canonical(
     up_object: NDArray[np.float64],
     up_env: NDArray[np.float64],
     previous: Mat4 | None,
+    colour: Callable[[Mat4], float] | None = None,
+    colour_margin: float = 0.1,
 ) -> tuple[Mat4, str, list[Mat4]]:
-    """Pick one pose among ``env_from_object @ S``; return (pose, chosen_by, equivalents)."""
+    """Pick one pose among ``env_from_object @ S``; return (pose, chosen_by, equivalents).
+
+    Order: ``colour`` (a discrete group whose colours break it: among the elements whose
+    object up agrees best with ``up_env`` — never upside down — the one whose colour
+    agreement beats the others by ``colour_margin``), then ``previous``, then ``up``."""
     if not symmetry.is_symmetric:
         return env_from_object, "unique", []
+    if colour is not None and symmetry.kind == "discrete" and symmetry.appearance_breaks:
+        poses = [env_from_object @ s for s in symmetry.rotations]
+        ups = np.array([p[:3, :3] @ up_object @ up_env for p in poses])
+        upright = [p for p, u in zip(poses, ups, strict=True) if u >= ups.max() - 0.02]
+        scores = np.array([colour(p) for p in upright])
+        if len(upright) > 1 and np.isfinite(scores).all():
+            order = np.argsort(-scores)
+            if scores[order[0]] - scores[order[1]] >= colour_margin:
+                chosen = upright[int(order[0])]
+                return chosen, "colour", [chosen @ s for s in symmetry.rotations[1:]]
     if symmetry.kind == "continuous":
         grid = [
             env_from_object @ symmetry.continuous_rotation(a) @ s
@@ -646,11 +705,9 @@ def estimate_pose(
         rmse = float(ev.inlier_rmse)
         coverage: float | None = None
         if cluster is not None:
-            posed = cKDTree(transform_points(env_from_object, model.points))
-            d, _ = posed.query(
-                cluster, distance_upper_bound=min(o.coverage_voxels * v, o.max_inlier_distance_m)
+            coverage = _cluster_coverage(
+                cluster, transform_points(env_from_object, model.points), v, o
             )
-            coverage = float(np.isfinite(d).mean())
         rejections: list[str] = []
         if fitness < o.min_fitness:
             rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
@@ -671,7 +728,13 @@ def estimate_pose(
 
     # 5. symmetry: one canonical pose
     chosen, chosen_by, equivalents = _canonical(
-        env_from_object, model.symmetry, model.up_object, up, previous
+        env_from_object,
+        model.symmetry,
+        model.up_object,
+        up,
+        previous,
+        lambda pose: _colour_agreement(model, pose, target_fine, dist_in),
+        o.colour_margin,
     )
     axis_env = origin_env = None
     if model.symmetry.kind == "continuous" and model.symmetry.axis is not None:

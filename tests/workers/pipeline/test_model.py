@@ -14,6 +14,7 @@ from workers.pipeline.errors import InputError
 from workers.pipeline.model import (
     MODEL_PRESETS,
     ModelOptions,
+    _texture_colors,
     diameter_m,
     load_prepared,
     load_surface,
@@ -121,6 +122,24 @@ def test_textured_obj_gets_texture_colours_and_work_dir_resumes(
         assert m.diameter_m == model.diameter_m
 
 
+def test_texture_colours_are_read_the_right_way_up(shared_data: Path) -> None:
+    # oracle: the texture file's own pixel at row (1 − v)·height, column u·width
+    folder = shared_data / "ycb" / "mustard_bottle"
+    mesh = o3d.io.read_triangle_mesh(folder / "textured.obj", True)
+    image = np.asarray(o3d.io.read_image(str(folder / "texture_map.png")))
+    tri = np.arange(0, len(mesh.triangles), 97)
+    bary = np.tile([1.0, 0.0, 0.0], (len(tri), 1))  # at each triangle's first corner
+    colours = _texture_colors(mesh, tri, bary)
+    assert colours is not None
+    uv = np.mod(np.asarray(mesh.triangle_uvs)[3 * tri], 1.0)
+    h, w = image.shape[:2]
+    rows = np.clip(((1.0 - uv[:, 1]) * h).astype(int), 0, h - 1)
+    cols = np.clip((uv[:, 0] * w).astype(int), 0, w - 1)
+    expected = image[rows, cols, :3] / 255.0
+    # a pixel's rounding may differ at a texel edge; the flipped lookup differs everywhere
+    assert np.mean(np.abs(colours - expected).max(axis=1) < 0.02) > 0.95
+
+
 def test_load_prepared_refuses_an_incomplete_directory(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"summary\.json"):
         load_prepared(tmp_path)
@@ -154,8 +173,8 @@ def test_symmetry_of_ycb_objects(shared_data: Path, name: str, kind: str, n_rota
         moved = pts[::20] @ s[:3, :3].T + s[:3, 3]
         d = [np.sqrt(tree.search_knn_vector_3d(p, 1)[2][0]) for p in moved]
         assert float(np.mean(d)) < 0.004
-    if kind != "none":
-        assert spec.appearance_breaks  # labels and coloured faces break the symmetry
+    # labels, grain and coloured faces break the symmetry; the bowl is plain red
+    assert spec.appearance_breaks == (kind != "none" and name != "bowl")
 
 
 def test_symmetry_spec_json_round_trip_and_validation() -> None:

@@ -81,3 +81,19 @@ def test_growth_gives_back_the_base_of_an_added_box() -> None:
     assert found["grown"].n_points > found["strict"].n_points
     iou = {k: c.mean_iou["crate"] for k, c in found.items()}
     assert iou["grown"] > iou["strict"]
+
+
+def test_growth_gives_back_the_base_of_a_removed_box() -> None:
+    # the base of a removed box lies within the depth tolerance of the floor the new
+    # cameras see behind it, so "not seen ≠ removed" never passes it; growth must
+    before = capture(BASE, CAMS, seed=1)
+    strict = PRESETS["default"].replace(grow_threshold=None)
+    found = {}
+    for name, options in {"strict": strict, "grown": PRESETS["default"]}.items():
+        res = run(before, [BASE[1]], options=options)
+        assert [(c.type, c.object_name) for c in res.changes] == [("removed", "crate")]
+        found[name] = res.changes[0].cluster
+    threshold = res.distances["removed"].threshold
+    assert found["strict"].bbox_min[2] > threshold - 0.01
+    assert found["grown"].bbox_min[2] < 0.01  # down to the floor (z = 0)
+    assert found["grown"].mean_iou["crate"] > found["strict"].mean_iou["crate"]

@@ -105,8 +105,10 @@ def select_neighbours(
     ``min_triangulation_angle_deg`` and have its optical axis within
     ``max_viewing_angle_deg``; partners are ranked by shared points × angle weight
     (saturating at 15°), those whose sparse depth range fits in ``max_disparities`` at the
-    pair's baseline first (SGBM finds nothing outside its window). Consistency neighbours
-    are the views sharing the most points.
+    pair's baseline first (SGBM finds nothing outside its window). Each view gets
+    ``pairs_per_view`` partners of its own: a partner that already chose it is skipped,
+    since that pair's one SGBM run gives depth to both. Consistency neighbours are the views
+    sharing the most points.
     """
     n = len(views)
     if visibility.shape != (len(points_env), n):
@@ -146,7 +148,9 @@ def select_neighbours(
             fits = span + 4.0 <= options.max_disparities
             scores.append((float(fits), float(shared[i, j]) * weight, j))
         scores.sort(reverse=True)
-        stereo.append(tuple(j for _, _, j in scores[: options.pairs_per_view]))
+        # a pair runs once and gives depth to both views: skip partners that already chose i
+        own = [j for _, _, j in scores if j >= i or i not in stereo[j]]
+        stereo.append(tuple(own[: options.pairs_per_view]))
         order = [int(j) for j in np.argsort(-shared[i]) if j != i and shared[i, j] >= 10]
         consist.append(tuple(order[: options.consistency_views]))
     return Neighbours(tuple(stereo), tuple(consist))

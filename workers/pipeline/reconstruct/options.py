@@ -48,7 +48,9 @@ class ReconstructOptions:
     sgbm_mode: str = "hh4"
     min_triangulation_angle_deg: float = 4.0
     max_viewing_angle_deg: float = 45.0
-    consistency_views: int = 6
+    # 4 instead of 6 neighbours: consistency 3.7 s instead of 7.1 s (known poses, 30 views,
+    # load 5-6) for completeness 0.496 vs 0.506 and the same median/p95 error
+    consistency_views: int = 4
     consistency_min_views: int = 2
     consistency_rel_tol: float = 0.01
     point_stride: int = 2

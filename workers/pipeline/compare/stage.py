@@ -1,8 +1,8 @@
 """The compare stage: two snapshots in the environment frame → clusters, identities, changes.
 
 Steps: C2C both ways → thresholds → candidate points → "not seen ≠ removed" filter →
-DBSCAN per side → hysteresis growth through points above the lower threshold →
-re-projection with visibility into the side's own capture → merging of split clusters →
+DBSCAN per side → re-projection with visibility into the side's own capture → merging of
+split clusters → hysteresis growth through points above the lower threshold →
 identification table (thesis eq. 3.1) → change types against the twin.
 Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
 """
@@ -88,6 +88,32 @@ def _near(points_env: FloatArray, idx: IntArray, ref: IntArray, distance_m: floa
     return np.asarray(idx[np.isfinite(d)], dtype=np.int64)
 
 
+def _visible_pixels(
+    capture: CaptureData,
+    groups: Sequence[IntArray],
+    depth_maps: Sequence[DepthMap] | None,
+    options: CompareOptions,
+) -> list[dict[int, FloatArray]]:
+    """``pixels[g][image]`` (n, 2): group g's visible pixels in each image where at least
+    ``min_visible_points`` of its points are visible."""
+    all_idx = np.concatenate(groups)
+    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    pixels: list[dict[int, FloatArray]] = [{} for _ in groups]
+    for ci, cam in enumerate(capture.cameras):
+        dm = depth_maps[ci] if depth_maps is not None else None
+        uv, vis = visible_points(
+            cam,
+            capture.points_env[all_idx],
+            dm,
+            options.depth_tolerance_m,
+            options.depth_tolerance_px,
+        )
+        counts = np.bincount(owner[vis], minlength=len(groups))
+        for g in np.flatnonzero(counts >= options.min_visible_points):
+            pixels[g][ci] = uv[vis & (owner == g)]
+    return pixels
+
+
 def _side_clusters(
     side: Side,
     capture: CaptureData,
@@ -101,33 +127,17 @@ def _side_clusters(
     options: CompareOptions,
     first_id: int,
 ) -> list[ClusterResult]:
-    """Cluster, grow (through ``low`` points, when given), re-project, merge and identify
-    one side's candidate points (indices into the capture's cloud)."""
+    """Cluster, re-project, merge, grow (through ``low`` points, when given) and identify
+    one side's candidate points (indices into the capture's cloud). Merging is decided on
+    the clusters as found (their sizes against the class diameters), before growth."""
     pts = capture.points_env[candidates]
     radius = options.cluster_radius_factor * spacing_m
     labels = dbscan(pts, radius, options.cluster_min_samples, options.cluster_min_points)
     groups = [candidates[g] for g in groups_from_labels(labels, options.max_clusters)]
     if not groups:
         return []
-    if low is not None:
-        groups = grow_groups(groups, capture.points_env, low, radius, grow_max_m)
-    all_idx = np.concatenate(groups)
-    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
     cams = capture.cameras
-    # visible pixels of each group in each image: pixels[g][image] -> (n, 2)
-    pixels: list[dict[int, FloatArray]] = [{} for _ in groups]
-    for ci, cam in enumerate(cams):
-        dm = depth_maps[ci] if depth_maps is not None else None
-        uv, vis = visible_points(
-            cam,
-            capture.points_env[all_idx],
-            dm,
-            options.depth_tolerance_m,
-            options.depth_tolerance_px,
-        )
-        counts = np.bincount(owner[vis], minlength=len(groups))
-        for g in np.flatnonzero(counts >= options.min_visible_points):
-            pixels[g][ci] = uv[vis & (owner == g)]
+    pixels = _visible_pixels(capture, groups, depth_maps, options)
     dets = [
         yolo_to_boxes(capture.detections.get(cam.name, np.zeros((0, 6))), cam.width, cam.height)
         for cam in cams
@@ -158,14 +168,21 @@ def _side_clusters(
             options.merge_shared_fraction,
             options.merge_size_margin,
         )
-    merged_idx: list[IntArray] = []
-    merged_boxes: list[dict[int, FloatArray]] = []
-    for part in partition:
-        merged_idx.append(np.concatenate([groups[g] for g in part]))
-        merged_pixels: dict[int, FloatArray] = {}
-        for img in sorted({i for g in part for i in pixels[g]}):
-            merged_pixels[img] = np.concatenate([pixels[g][img] for g in part if img in pixels[g]])
-        merged_boxes.append(boxes_of(merged_pixels))
+    merged_idx = [np.concatenate([groups[g] for g in part]) for part in partition]
+    if low is not None:
+        merged_idx = grow_groups(merged_idx, capture.points_env, low, radius, grow_max_m)
+        merged_pixels = _visible_pixels(capture, merged_idx, depth_maps, options)
+    else:
+        merged_pixels = []
+        for part in partition:
+            images = sorted({i for g in part for i in pixels[g]})
+            merged_pixels.append(
+                {
+                    img: np.concatenate([pixels[g][img] for g in part if img in pixels[g]])
+                    for img in images
+                }
+            )
+    merged_boxes = [boxes_of(p) for p in merged_pixels]
     table = identify(merged_boxes, dets, classes)
     out: list[ClusterResult] = []
     for c, (idx, boxes, part) in enumerate(zip(merged_idx, merged_boxes, partition, strict=True)):

@@ -8,8 +8,9 @@ Order of decisions (all pairings are optimal assignments, Hungarian, on centroid
 3. *swapped*: a leftover removed and a leftover added cluster of different classes whose
    centroids are < ``swap_distance_factor × max(diameters)`` apart (about the same place);
 4. leftovers: *added* (a new instance id) and *removed*;
-5. unidentified clusters of at least ``unidentified_min_points`` points are reported as
-   ``unidentified`` changes, never dropped; they all stay in the clusters table.
+5. unidentified clusters of at least ``unidentified_min_points`` points found at the strict
+   threshold (growth does not count) are reported as ``unidentified`` changes, never
+   dropped; they all stay in the clusters table.
 Identity across snapshots: moved keeps the closed instance's id; added and swapped-in
 objects get a new one from ``new_id``.
 """
@@ -169,7 +170,7 @@ def classify_changes(
     for c in clusters:
         if (
             c.object_name is None
-            and c.n_points >= options.unidentified_min_points
+            and c.n_evidence_points >= options.unidentified_min_points
             and c.id not in not_changes
         ):
             changes.append(

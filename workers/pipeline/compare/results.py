@@ -25,7 +25,9 @@ class ClusterResult:
     ``indices`` (n,) into that cloud; ``points_env`` (n, 3) metres, environment frame;
     ``boxes`` image name → (4,) box ``[x1, y1, x2, y2]`` px in that side's capture;
     ``metrics``/``mean_iou``/``overlaps`` per class name; ``object_name`` the identified
-    class or None; ``merged_from`` the raw cluster numbers it was built from.
+    class or None; ``merged_from`` the raw cluster numbers it was built from;
+    ``n_seed_points`` how many of its points were found at the strict threshold, before
+    hysteresis growth (None: not grown).
     """
 
     id: int
@@ -39,10 +41,16 @@ class ClusterResult:
     metrics: dict[str, float]
     object_name: str | None
     merged_from: tuple[int, ...] = ()
+    n_seed_points: int | None = None
 
     @property
     def n_points(self) -> int:
         return len(self.indices)
+
+    @property
+    def n_evidence_points(self) -> int:
+        """Points found at the strict threshold (all of them when the cluster was not grown)."""
+        return self.n_points if self.n_seed_points is None else self.n_seed_points
 
     @property
     def centroid(self) -> FloatArray:
@@ -99,6 +107,7 @@ class ClusterResult:
             "occurrences": self.occurrences,
             "metrics": dict(self.metrics),
             "merged_from": list(self.merged_from),
+            "n_seed_points": self.n_seed_points,
         }
 
 

@@ -169,7 +169,9 @@ def _side_clusters(
             options.merge_size_margin,
         )
     merged_idx = [np.concatenate([groups[g] for g in part]) for part in partition]
+    n_seeds: list[int | None] = [None] * len(merged_idx)
     if low is not None:
+        n_seeds = [len(m) for m in merged_idx]
         merged_idx = grow_groups(merged_idx, capture.points_env, low, radius, grow_max_m)
         merged_pixels = _visible_pixels(capture, merged_idx, depth_maps, options)
     else:
@@ -185,7 +187,8 @@ def _side_clusters(
     merged_boxes = [boxes_of(p) for p in merged_pixels]
     table = identify(merged_boxes, dets, classes)
     out: list[ClusterResult] = []
-    for c, (idx, boxes, part) in enumerate(zip(merged_idx, merged_boxes, partition, strict=True)):
+    rows = zip(merged_idx, merged_boxes, partition, n_seeds, strict=True)
+    for c, (idx, boxes, part, n_seed) in enumerate(rows):
         best = table.best(c, options.identify_threshold)
         out.append(
             ClusterResult(
@@ -200,6 +203,7 @@ def _side_clusters(
                 metrics={k: float(table.metric[c, j]) for j, k in enumerate(classes)},
                 object_name=None if best is None else classes[best],
                 merged_from=tuple(part),
+                n_seed_points=n_seed,
             )
         )
     return out

@@ -3,6 +3,7 @@ split clusters, unidentified clusters, stable instance ids, the contract JSON.""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import Sequence
 
@@ -229,6 +230,13 @@ def test_pairing_rules_without_images() -> None:
     )
     quiet = classify_changes(clusters, twin, diam, opts, Counter(), not_changes={7})
     assert all(c.type != "unidentified" for c in quiet)
+    # a grown cluster counts only its points found at the strict threshold
+    grown = dataclasses.replace(clusters[6], n_seed_points=5)
+    ten = CompareOptions(moved_max_distance=2.0, unidentified_min_points=10)
+    assert grown.n_points == 50 and grown.n_evidence_points == 5
+    assert [c.type for c in classify_changes([grown], [], diam, ten, Counter())] == []
+    kept = dataclasses.replace(grown, n_seed_points=10)
+    assert [c.type for c in classify_changes([kept], [], diam, ten, Counter())] == ["unidentified"]
 
 
 @pytest.mark.parametrize("preset", ["lod", "thesis"])

@@ -84,7 +84,7 @@ def test_sgbm_pair_depths_are_millimetre_accurate_on_a_plane() -> None:
 def test_alignment_refinement_ignores_a_changed_object(opts: ReconstructOptions) -> None:
     """Reference: floor + box A. New snapshot: floor + box B elsewhere, offset by 4 mm and
     0.3°. The Tukey ICP recovers the offset within 0.5 mm (the moved box does not pull it),
-    with 1 cm voxels and with the defaults (8 mm voxels, 20 k source points)."""
+    with 1 cm voxels and with the defaults (8 mm voxels)."""
     rng = np.random.default_rng(2)
     floor = np.column_stack([rng.uniform(-1, 1, (40000, 2)), np.zeros(40000)])
     wall = np.column_stack(

@@ -77,6 +77,10 @@ class PoseOptions:
     ``colored_icp`` is off by default: on YCB partial views with exact texture colours it
     was accepted by the fit checks yet moved the rotation from 0.1–0.2° to about 1° off.
 
+    ``support_band_voxels``: the plane the object stands on (floor, table; found under the
+    cluster) is removed from the scene up to this height (at most ``max_inlier_distance_m``),
+    and a candidate is penalised for the share of model points sunk below it; 0 disables.
+
     ``colour_margin``: a symmetric object whose colours break its symmetry (a label) is
     published in the equivalent pose whose model colours correlate best with the scene's,
     when that correlation beats every other equivalent's by this margin.
@@ -120,6 +124,7 @@ class PoseOptions:
     max_coverage_voxels: float = 1.5
     min_cluster_coverage: float = 0.85
     colour_margin: float = 0.1
+    support_band_voxels: float = 0.5
     max_runner_up_ratio: float = 0.85
     seed: int = 0
 
@@ -350,6 +355,89 @@ def _colour_agreement(
     return float((a * b).sum() / den) if den > 0 else float("nan")
 
 
+def _rounded_rigid(a_from_b: Mat4, decimals: int) -> Mat4:
+    """``a_from_b`` rounded to ``decimals`` and made a rotation again (Gram-Schmidt in
+    element-wise arithmetic, so that equal inputs give bit-identical outputs)."""
+    r = np.round(a_from_b[:3, :3], decimals)
+    x = r[:, 0] / np.sqrt((r[:, 0] ** 2).sum())
+    y = r[:, 1] - (x * r[:, 1]).sum() * x
+    y = y / np.sqrt((y**2).sum())
+    return make_rigid(np.column_stack([x, y, np.cross(x, y)]), np.round(a_from_b[:3, 3], decimals))
+
+
+def _moment_candidates(model: PreparedModel, cluster: Points) -> list[Mat4]:
+    """The four proper rotations that map the model's principal axes onto the (K, 3)
+    cluster's, centroid on centroid: a start independent of descriptors, which a flat or
+    elongated object with few distinctive features (a hammer) needs."""
+    if len(cluster) < 10:
+        return []
+    m_c = model.points - model.centre_object
+    s_mean = cluster.mean(axis=0)
+    _, e_m = np.linalg.eigh(m_c.T @ m_c)
+    _, e_s = np.linalg.eigh((cluster - s_mean).T @ (cluster - s_mean))
+    e_m[:, 2] *= np.sign(np.linalg.det(e_m))  # right-handed axes: even sign flips are proper
+    e_s[:, 2] *= np.sign(np.linalg.det(e_s))
+    out = []
+    for signs in ((1, 1, 1), (-1, -1, 1), (-1, 1, -1), (1, -1, -1)):
+        r = e_s @ np.diag(signs) @ e_m.T
+        out.append(make_rigid(r, s_mean - r @ model.centre_object))
+    return out
+
+
+def _support_plane(
+    points: Points,
+    normals: Points,
+    up: NDArray[np.float64],
+    cluster: Points,
+    band: float,
+    seed: int,
+) -> NDArray[np.float64] | None:
+    """The plane (4,) ``[n, d]`` (unit ``n`` within 10° of ``up``, height ``n·p + d``) that the
+    object stands on: the largest plane (RANSAC, 200 draws, seeded) of the near-horizontal
+    (N, 3) scene points that at least 10 % of them fit within ``band / 2`` and that the
+    (K, 3) cluster's median lies more than ``band`` above (a box's own top face is not its
+    support); None if none."""
+    rng = np.random.default_rng(seed)
+    horizontal = points[np.abs(normals @ up) > np.cos(np.radians(25.0))]
+    for _ in range(2):
+        if len(horizontal) < 100:
+            return None
+        tri = horizontal[rng.integers(0, len(horizontal), size=(200, 3))]
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        n *= np.where(n @ up < 0, -1.0, 1.0)[:, None]
+        ok = n @ up > np.cos(np.radians(10.0))
+        if not ok.any():
+            return None
+        n, d = n[ok], -np.einsum("ij,ij->i", n[ok], tri[ok, 0])
+        sample = horizontal[rng.choice(len(horizontal), min(len(horizontal), 2000), replace=False)]
+        counts = (np.abs(sample @ n.T + d) < band / 2).sum(axis=0)
+        best = int(np.argmax(counts))
+        inliers = horizontal[np.abs(horizontal @ n[best] + d[best]) < band / 2]
+        if len(inliers) < 0.1 * len(horizontal):
+            return None
+        centre = inliers.mean(axis=0)
+        normal = np.linalg.svd(inliers - centre, full_matrices=False)[2][2]
+        normal = normal if normal @ up > 0 else -normal
+        out = np.append(normal, -normal @ centre)
+        if out[:3] @ up < np.cos(np.radians(10.0)):
+            return None
+        if float(np.median(cluster @ out[:3] + out[3])) > band:
+            return out
+        # a horizontal face of the object itself: look below it
+        horizontal = horizontal[horizontal @ out[:3] + out[3] < -band]
+    return None
+
+
+def _support_factor(posed: Points, support: NDArray[np.float64] | None, band: float) -> float:
+    """1 − 3 × the share of (N, 3) posed model points more than ``band`` below the support
+    plane (an object does not sink into the floor it stands on), at least 0."""
+    if support is None:
+        return 1.0
+    below = float(np.mean(posed @ support[:3] + support[3] < -band))
+    return max(0.0, 1.0 - 3.0 * below)
+
+
 def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     d, _ = tree.query(points, distance_upper_bound=tau)
     d = np.where(np.isfinite(d), d, tau)
@@ -522,21 +610,38 @@ def estimate_pose(
         extent = float(np.sqrt(np.max(np.sum((cluster - centre) ** 2, axis=1))))
         radius = min(max(radius, extent + 0.25 * diam), max(diam, o.crop_factor * diam))
     c_pts, c_nrm, c_col = _crop(scene, centre, radius)
+    cluster_low = cluster if cluster is not None else centre[None, :]
     if len(c_pts) < 30:
         raise RegistrationError(
             f"only {len(c_pts)} scene points within {radius:.3f} m of the cluster centre"
         )
     scene_full = make_cloud(c_pts, c_nrm, c_col)
+    if len(c_pts) > 4 * len(model.points):
+        # a dense reconstruction: v/4 keeps every detail the fit uses, at a fraction of the
+        # cost of normals and neighbour queries on every point
+        scene_full = scene_full.voxel_down_sample(v / 4)
+    f_pts = np.asarray(scene_full.points)
     if c_nrm is None:
         scene_full.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * v, max_nn=30))
         scene_full.normals = o3d.utility.Vector3dVector(
-            _orient_scene_normals(np.asarray(scene_full.normals), c_pts, centre, up)
+            _orient_scene_normals(np.asarray(scene_full.normals), f_pts, centre, up)
         )
+    band = min(o.support_band_voxels * v, o.max_inlier_distance_m)
+    support = (
+        _support_plane(f_pts, np.asarray(scene_full.normals), up, cluster_low, band, o.seed)
+        if o.support_band_voxels > 0
+        else None
+    )
+    if support is not None:
+        # the floor or table the object stands on is not the object: a flat object laid
+        # into it upside down fits it better than the object itself
+        above = np.flatnonzero(f_pts @ support[:3] + support[3] > band)
+        if len(above) >= 30:
+            scene_full = scene_full.select_by_index(above.tolist())
+    timings["support_removed"] = float(len(f_pts) - len(scene_full.points))
     scene_down = scene_full.voxel_down_sample(v)
     scene_down.normals = o3d.utility.Vector3dVector(_normalised(np.asarray(scene_down.normals)))
-    scene_fine = (
-        scene_full.voxel_down_sample(v / 4) if len(c_pts) > 4 * len(model.points) else scene_full
-    )
+    scene_fine = scene_full
     if scene_fine.has_normals():
         scene_fine.normals = o3d.utility.Vector3dVector(_normalised(np.asarray(scene_fine.normals)))
     n_opts = model.summary.get("options", {})
@@ -573,12 +678,16 @@ def estimate_pose(
         t = _icp(
             model.down_points, model.down_normals, target_fine, t, o.icp_scales_voxels[1] * v, 10
         )
+        # Open3D's multi-threaded RANSAC may return another of several tied hypotheses
+        # between runs of one seed; ICP takes them to the same pose up to ~1e-15, and
+        # rounding to 1e-9 (far below the accuracy) makes everything after bit-identical
+        t = _rounded_rigid(t, 9)
         pts = transform_points(t, model.down_points)
         ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
         trials.append(
             Trial(
                 source,
-                _truncated_score(tree, pts, tau),
+                _truncated_score(tree, pts, tau) * _support_factor(pts, support, band),
                 float(ev.fitness),
                 float(ev.inlier_rmse),
                 time.perf_counter() - t_begin,
@@ -624,6 +733,9 @@ def estimate_pose(
                     polish(invert_rigid(t_res) if from_scene else t_res, f"ransac seed {k}", tk)
         if round_ == 0 and previous is not None:
             polish(previous, "previous pose", time.perf_counter())
+        if round_ == 0 and cluster is not None:
+            for k, init in enumerate(_moment_candidates(model, cluster)):
+                polish(init, f"cluster axes {k}", time.perf_counter())
         if not trials or max(t.score for t in trials) <= 0.0:
             raise RegistrationError(
                 f"no registration candidate explains the scene region ({len(trials)} candidates, "
@@ -655,7 +767,10 @@ def estimate_pose(
                 pose = _icp(
                     mid_points, mid_normals, target_fine, pose, scale * v, o.icp_max_iterations
                 )
-            score = _truncated_score(tree, transform_points(pose, mid_points), tau_fine)
+            posed_mid = transform_points(pose, mid_points)
+            score = _truncated_score(tree, posed_mid, tau_fine) * _support_factor(
+                posed_mid, support, band
+            )
             refined.append((score, pose, t))
         refined.sort(key=lambda r: -r[0])
         best_fine, env_from_object, best = refined[0]

@@ -12,6 +12,7 @@ from workers.pipeline.reconstruct.mvs import (
     DenseView,
     Neighbours,
     consistent_points,
+    disparity_window,
     pair_depths,
 )
 from workers.pipeline.reconstruct.options import ReconstructOptions
@@ -78,6 +79,20 @@ def test_sgbm_pair_depths_are_millimetre_accurate_on_a_plane() -> None:
         assert ok.sum() > 0.6 * (true > 0).sum()  # the rest is outside the partner view
         assert np.median(np.abs(est[ok] - true[ok])) < 0.001
         assert np.percentile(np.abs(est[ok] - true[ok]), 95) < 0.005
+
+
+def test_disparity_window_reaches_far_and_keeps_most_points_when_over_budget() -> None:
+    """Sparse disparities 100-200 px: the window ends above the nearest (p99 × 1.15 + 2) and
+    reaches down to 0 px = infinity (a far wall with no sparse point is still searched).
+    60 % of points at 100-150 px and 40 % at 500-600 px (span over the budget): the window
+    holds the larger group."""
+    rng = np.random.default_rng(0)
+    start, num = disparity_window(rng.uniform(100, 200, 500), 256)
+    assert start == 0 and 1.15 * 199 + 2 <= num <= 256  # from infinity (0 px) to the nearest
+    start, num = disparity_window(
+        np.concatenate([rng.uniform(100, 150, 600), rng.uniform(500, 600, 400)]), 256
+    )
+    assert num == 256 and start <= 100 and start + num >= 150
 
 
 @pytest.mark.parametrize("opts", [ReconstructOptions(icp_voxel_m=0.01), ReconstructOptions()])

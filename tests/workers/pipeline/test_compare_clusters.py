@@ -8,7 +8,7 @@ import pytest
 from tests.workers.pipeline.test_compare_changes import BASE, CAMS, run
 from tests.workers.pipeline.test_compare_scene import capture, crate
 from workers.pipeline.compare import PRESETS
-from workers.pipeline.compare.clusters import dbscan, grow_groups
+from workers.pipeline.compare.clusters import _near_voxels, dbscan, grow_groups
 from workers.pipeline.errors import ComparisonError
 
 
@@ -97,3 +97,14 @@ def test_growth_gives_back_the_base_of_a_removed_box() -> None:
     assert found["strict"].bbox_min[2] > threshold - 0.01
     assert found["grown"].bbox_min[2] < 0.01  # down to the floor (z = 0)
     assert found["grown"].mean_iou["crate"] > found["strict"].mean_iou["crate"]
+
+
+def test_voxel_prefilter_keeps_every_point_within_reach() -> None:
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-1, 1, (5000, 3))
+    seeds = rng.uniform(-0.5, 0.5, (40, 3))
+    cell = 0.1
+    near = np.linalg.norm(pts[:, None, :] - seeds[None, :, :], axis=2).min(axis=1) <= cell
+    mask = _near_voxels(pts, seeds, cell)
+    assert np.all(mask[near])  # a superset of the points within reach
+    assert mask.sum() < 0.5 * len(pts)  # and it prunes

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from tests.workers.pipeline.test_compare_scene import (
     CLASSES,
@@ -103,3 +104,11 @@ def test_geometry_the_new_cameras_did_not_see_is_not_removed() -> None:
     unchecked = PRESETS["default"].replace(check_seen_removed=False)
     res2 = compare_snapshots(before, after, twin, CLASSES, DIAMETERS, unchecked)
     assert any(c.side == "removed" and c.centroid[0] > 0.3 for c in res2.clusters)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 500])
+@pytest.mark.parametrize("p", [0.5, 2.0, 25.0])
+def test_box_percentiles_equal_numpy(n: int, p: float) -> None:
+    uv = np.random.default_rng(n).uniform(0, 800, (n, 2))
+    lo, hi = np.percentile(uv, [p, 100 - p], axis=0)
+    np.testing.assert_allclose(box_from_pixels(uv, p), [lo[0], lo[1], hi[0], hi[1]], atol=1e-9)

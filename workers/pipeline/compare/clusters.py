@@ -88,6 +88,25 @@ def groups_from_labels(labels: IntArray, max_clusters: int | None = None) -> lis
     return [order[s:e].astype(np.int64) for s, e in zip(starts, ends, strict=True)]
 
 
+def _near_voxels(points: FloatArray, seeds: FloatArray, cell: float) -> NDArray[np.bool_]:
+    """Mask (N,) of ``points`` in a voxel of side ``cell`` that is, or touches, a voxel
+    holding one of ``seeds``: a superset of the points within ``cell`` of a seed."""
+    if len(points) == 0 or len(seeds) == 0:
+        return np.zeros(len(points), dtype=bool)
+    origin = seeds.min(axis=0) - 2 * cell
+    seed_vox = np.unique(np.floor((seeds - origin) / cell).astype(np.int64), axis=0)
+    dims = seed_vox.max(axis=0) + 3
+    offsets = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    near = (seed_vox[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
+    near_keys = np.unique(np.ravel_multi_index(near.T, dims))
+    vox = np.floor((points - origin) / cell).astype(np.int64)
+    inside = np.all((vox >= 0) & (vox < dims), axis=1)
+    mask = np.zeros(len(points), dtype=bool)
+    keys = np.ravel_multi_index(vox[inside].T, dims)
+    mask[np.flatnonzero(inside)] = np.isin(keys, near_keys)
+    return mask
+
+
 def grow_groups(
     groups: Sequence[IntArray],
     points_env: ArrayLike,
@@ -110,8 +129,14 @@ def grow_groups(
         return [np.sort(g) for g in groups]
     seeds = np.concatenate(groups).astype(np.int64)
     owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
-    extra = np.setdiff1d(np.asarray(low, dtype=np.int64), seeds)
-    if extra.size:  # a path is never shorter than the straight line: prune far points
+    is_extra = np.zeros(len(pts), dtype=bool)
+    is_extra[np.asarray(low, dtype=np.int64)] = True
+    is_extra[seeds] = False
+    extra = np.flatnonzero(is_extra)
+    # a path is never shorter than the straight line: keep the points within max_distance
+    # of a seed; first cheaply, those in a voxel (side max_distance) next to a seed's voxel
+    extra = extra[_near_voxels(pts[extra], pts[seeds], max_distance)]
+    if extra.size:
         near, _ = cKDTree(pts[seeds]).query(pts[extra], distance_upper_bound=max_distance)
         extra = extra[np.isfinite(near)]
     if extra.size == 0:

@@ -16,7 +16,6 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.c2c import c2c_both_ways
 from workers.pipeline.compare.changes import classify_changes
@@ -80,14 +79,6 @@ def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]
             raise InputError(f"diameter of {name!r} must be finite and > 0, got {d}")
 
 
-def _near(points_env: FloatArray, idx: IntArray, ref: IntArray, distance_m: float) -> IntArray:
-    """The indices ``idx`` whose points lie within ``distance_m`` of some point of ``ref``."""
-    if idx.size == 0 or ref.size == 0:
-        return idx[:0]
-    d, _ = cKDTree(points_env[ref]).query(points_env[idx], distance_upper_bound=distance_m)
-    return np.asarray(idx[np.isfinite(d)], dtype=np.int64)
-
-
 def _visible_pixels(
     capture: CaptureData,
     groups: Sequence[IntArray],
@@ -96,21 +87,19 @@ def _visible_pixels(
 ) -> list[dict[int, FloatArray]]:
     """``pixels[g][image]`` (n, 2): group g's visible pixels in each image where at least
     ``min_visible_points`` of its points are visible."""
-    all_idx = np.concatenate(groups)
+    all_pts = capture.points_env[np.concatenate(groups)]
+    # group g owns the points starts[g]:starts[g + 1] (owner ids are non-decreasing)
     owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
     pixels: list[dict[int, FloatArray]] = [{} for _ in groups]
     for ci, cam in enumerate(capture.cameras):
         dm = depth_maps[ci] if depth_maps is not None else None
         uv, vis = visible_points(
-            cam,
-            capture.points_env[all_idx],
-            dm,
-            options.depth_tolerance_m,
-            options.depth_tolerance_px,
+            cam, all_pts, dm, options.depth_tolerance_m, options.depth_tolerance_px
         )
-        counts = np.bincount(owner[vis], minlength=len(groups))
-        for g in np.flatnonzero(counts >= options.min_visible_points):
-            pixels[g][ci] = uv[vis & (owner == g)]
+        seen = np.flatnonzero(vis)
+        bounds = np.searchsorted(owner[seen], np.arange(len(groups) + 1))
+        for g in np.flatnonzero(np.diff(bounds) >= options.min_visible_points):
+            pixels[g][ci] = uv[seen[bounds[g] : bounds[g + 1]]]
     return pixels
 
 
@@ -290,25 +279,15 @@ def compare_snapshots(
     cand_added = np.flatnonzero(c2c.added > dist_added.threshold).astype(np.int64)
     cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
     n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
-    # growth candidates: above the lower threshold, within the growth reach of a candidate
+    # growth candidates: above the lower threshold (grow_groups keeps those within reach)
     grow_max = {
         "added": options.grow_max_factor * dist_added.threshold,
         "removed": options.grow_max_factor * dist_removed.threshold,
     }
     low_added = low_removed = None
     if dist_added.grow_threshold is not None and dist_removed.grow_threshold is not None:
-        low_added = _near(
-            after.points_env,
-            np.flatnonzero(c2c.added > dist_added.grow_threshold),
-            cand_added,
-            grow_max["added"],
-        )
-        low_removed = _near(
-            before.points_env,
-            np.flatnonzero(c2c.removed > dist_removed.grow_threshold),
-            cand_removed,
-            grow_max["removed"],
-        )
+        low_added = np.flatnonzero(c2c.added > dist_added.grow_threshold)
+        low_removed = np.flatnonzero(c2c.removed > dist_removed.grow_threshold)
     lap("thresholds")
 
     if options.check_seen_removed and maps_after is not None:
@@ -359,13 +338,15 @@ def compare_snapshots(
     # to old surfaces by construction).
     unevidenced: set[int] = set()
     if options.check_seen_added and maps_before is not None:
-        for c in clusters:
-            if c.side != "added" or c.object_name is not None:
-                continue
-            strict = c.indices[c2c.added[c.indices] > dist_added.threshold]
-            seen = seen_empty_counts(after.points_env[strict], maps_before, *tol)
-            if float(np.mean(seen >= options.min_seen_views)) < options.min_seen_fraction:
-                unevidenced.add(c.id)
+        unknown = [c for c in clusters if c.side == "added" and c.object_name is None]
+        strict = [c.indices[c2c.added[c.indices] > dist_added.threshold] for c in unknown]
+        if unknown:  # one pass over the cameras for all of them
+            seen = seen_empty_counts(after.points_env[np.concatenate(strict)], maps_before, *tol)
+            owner = np.repeat(np.arange(len(unknown)), [len(idx) for idx in strict])
+            n_seen = np.bincount(owner[seen >= options.min_seen_views], minlength=len(unknown))
+            for c, idx, k in zip(unknown, strict, n_seen, strict=True):
+                if k < options.min_seen_fraction * len(idx):
+                    unevidenced.add(c.id)
     try:
         changes = classify_changes(
             clusters, twin, class_diameters_m, options, make_id, not_changes=unevidenced

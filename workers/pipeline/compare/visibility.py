@@ -201,6 +201,13 @@ def box_from_pixels(uv: FloatArray, percentile: float = 2.0) -> FloatArray:
     and ``100 − percentile`` percentiles of x and y (0 gives the full extent)."""
     if percentile <= 0:
         lo, hi = uv.min(axis=0), uv.max(axis=0)
-    else:
-        lo, hi = np.percentile(uv, [percentile, 100.0 - percentile], axis=0)
-    return np.array([lo[0], lo[1], hi[0], hi[1]], dtype=np.float64)
+        return np.array([lo[0], lo[1], hi[0], hi[1]], dtype=np.float64)
+    # np.percentile's linear interpolation by partial sorting (np.percentile's own overhead
+    # dominated for the thousands of small boxes of a comparison)
+    n = len(uv)
+    pos = np.array([percentile, 100.0 - percentile]) * ((n - 1) / 100.0)
+    below = np.floor(pos).astype(np.int64)
+    above = np.minimum(below + 1, n - 1)
+    part = np.partition(uv, np.unique(np.concatenate([below, above])), axis=0)
+    q = part[below] + (part[above] - part[below]) * (pos - below)[:, None]
+    return np.array([q[0, 0], q[0, 1], q[1, 0], q[1, 1]], dtype=np.float64)

@@ -102,6 +102,7 @@ class PoseOptions:
 
     crop_factor: float = 0.7
     n_seeds: int = 5  # per round; up to max_rounds rounds while the pose is not verified
+    min_seeds: int = 2  # per round; more only until two starts agree on the best candidate
     ransac_max_iterations: int = 20000
     ransac_confidence: float = 0.999
     ransac_distance_voxels: float = 1.5
@@ -707,8 +708,17 @@ def estimate_pose(
     # rounds: more RANSAC seeds only while the best pose is not verified (hard views)
     for round_ in range(o.max_rounds):
         t0 = time.perf_counter()
+        if round_ == 0 and previous is not None:
+            polish(previous, "previous pose", time.perf_counter())
+        if round_ == 0 and cluster is not None:
+            for k, init in enumerate(_moment_candidates(model, cluster)):
+                polish(init, f"cluster axes {k}", time.perf_counter())
         if len(scene_down.points) >= 3:
             for k in range(round_ * o.n_seeds, (round_ + 1) * o.n_seeds):
+                if k - round_ * o.n_seeds >= o.min_seeds and _confirmed(
+                    trials, model.symmetry, diam, model.centre_object
+                ):
+                    break  # two independent starts already agree on the best candidate
                 tk = time.perf_counter()
                 o3d.utility.random.seed(o.seed * 1000 + k)
                 # scene → model by default: every visible scene point has its match on the
@@ -731,11 +741,6 @@ def estimate_pose(
                 if len(res.correspondence_set) >= 3:
                     t_res = np.asarray(res.transformation, dtype=np.float64)
                     polish(invert_rigid(t_res) if from_scene else t_res, f"ransac seed {k}", tk)
-        if round_ == 0 and previous is not None:
-            polish(previous, "previous pose", time.perf_counter())
-        if round_ == 0 and cluster is not None:
-            for k, init in enumerate(_moment_candidates(model, cluster)):
-                polish(init, f"cluster axes {k}", time.perf_counter())
         if not trials or max(t.score for t in trials) <= 0.0:
             raise RegistrationError(
                 f"no registration candidate explains the scene region ({len(trials)} candidates, "
@@ -877,6 +882,22 @@ def estimate_pose(
         n_scene_points=len(c_pts),
         alternatives=tuple((r[0], r[1]) for r in refined[1:]),
         timings_s=timings,
+    )
+
+
+def _confirmed(
+    trials: list[Trial], symmetry: SymmetrySpec, diameter: float, centre: NDArray[np.float64]
+) -> bool:
+    """True when another trial (another start) reached the best-scoring trial's pose."""
+    if len(trials) < 2:
+        return False
+    best = max(trials, key=lambda t: t.score)
+    return any(
+        t is not best
+        and not distinct_pose(
+            t.env_from_object, best.env_from_object, symmetry, diameter, centre=centre
+        )
+        for t in trials
     )
 
 

@@ -131,7 +131,9 @@ def test_random_pose_is_recovered(
     assert result.fitness > 0.3 and result.inlier_rmse_m < 0.003
     assert result.env_from_object.dtype == np.float64 and result.env_from_object.shape == (4, 4)
     ransac = [t for t in result.trials if t.source.startswith("ransac") and "+" not in t.source]
-    assert len(ransac) == POSE_PRESETS["default"].n_seeds
+    # seeds stop once two starts agree on the best candidate, after at least min_seeds
+    default = POSE_PRESETS["default"]
+    assert default.min_seeds <= len(ransac) <= default.n_seeds
 
 
 def test_same_seed_same_pose(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> None:

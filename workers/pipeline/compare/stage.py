@@ -280,10 +280,8 @@ def compare_snapshots(
     cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
     n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
     # growth candidates: above the lower threshold (grow_groups keeps those within reach)
-    grow_max = {
-        "added": options.grow_max_factor * dist_added.threshold,
-        "removed": options.grow_max_factor * dist_removed.threshold,
-    }
+    reach = options.grow_max_diameters * max(class_diameters_m.values(), default=0.0)
+    grow_max = {"added": reach, "removed": reach}
     low_added = low_removed = None
     if dist_added.grow_threshold is not None and dist_removed.grow_threshold is not None:
         low_added = np.flatnonzero(c2c.added > dist_added.grow_threshold)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tests.workers.pipeline.test_compare_changes import BASE, CAMS, run
-from tests.workers.pipeline.test_compare_scene import capture, crate
+from tests.workers.pipeline.test_compare_scene import Obj, capture, crate
 from workers.pipeline.compare import PRESETS
 from workers.pipeline.compare.clusters import _near_voxels, dbscan, grow_groups
 from workers.pipeline.errors import ComparisonError
@@ -108,3 +108,19 @@ def test_voxel_prefilter_keeps_every_point_within_reach() -> None:
     mask = _near_voxels(pts, seeds, cell)
     assert np.all(mask[near])  # a superset of the points within reach
     assert mask.sum() < 0.5 * len(pts)  # and it prunes
+
+
+def test_growth_reaches_a_low_foot_far_from_the_rest() -> None:
+    # an L-shaped "cart": a 30 cm upright and a 45 cm foot 3 cm high; only the upright is
+    # found at the strict threshold, and only a reach of object size brings the foot back
+    ell = Obj(2, (0.0, -0.2), (((0.0, 0.0), (0.1, 0.1, 0.3)), ((0.275, 0.0), (0.45, 0.1, 0.03))))
+    before = capture([*BASE, ell], CAMS, seed=1)
+    short = PRESETS["default"].replace(grow_max_diameters=0.05)  # 4 cm of path
+    for options in (short, PRESETS["default"].replace(grow_threshold=None)):
+        res = run(before, BASE, options=options)
+        assert [(c.type, c.object_name) for c in res.changes] == [("unidentified", None)]
+    res = run(before, BASE)
+    assert [(c.type, c.object_name) for c in res.changes] == [("removed", "cart")]
+    cluster = res.changes[0].cluster
+    assert cluster.bbox_max[0] - cluster.bbox_min[0] > 0.45  # upright and foot
+    assert cluster.n_seed_points is not None and cluster.n_points > cluster.n_seed_points

@@ -34,14 +34,82 @@ FAST = MODEL_PRESETS["fast"]
 def _box_mesh(path: Path, size_xyz: tuple[float, float, float]) -> Path:
     box = o3d.geometry.TriangleMesh.create_box(*size_xyz)
     box.compute_triangle_normals()
-    o3d.io.write_triangle_mesh(path, box)
+    if path.suffix == ".glb":
+        _write_glb(path, np.asarray(box.vertices), np.asarray(box.triangles))
+    else:
+        o3d.io.write_triangle_mesh(path, box)
     return path
+
+
+def _write_glb(path: Path, vertices: np.ndarray, triangles: np.ndarray) -> None:
+    """A minimal binary glTF 2.0 file with one mesh (Open3D 0.20's own .glb writer makes
+    files its reader rejects: "Buffer view ... is out of range")."""
+    pos = vertices.astype("<f4").tobytes()
+    idx = triangles.astype("<u4").tobytes()
+    doc = {
+        "asset": {"version": "2.0"},
+        "buffers": [{"byteLength": len(pos) + len(idx)}],
+        "bufferViews": [
+            {"buffer": 0, "byteOffset": 0, "byteLength": len(pos), "target": 34962},
+            {"buffer": 0, "byteOffset": len(pos), "byteLength": len(idx), "target": 34963},
+        ],
+        "accessors": [
+            {
+                "bufferView": 0,
+                "componentType": 5126,
+                "count": len(vertices),
+                "type": "VEC3",
+                "min": vertices.min(axis=0).tolist(),
+                "max": vertices.max(axis=0).tolist(),
+            },
+            {"bufferView": 1, "componentType": 5125, "count": triangles.size, "type": "SCALAR"},
+        ],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "indices": 1}]}],
+        "nodes": [{"mesh": 0}],
+        "scenes": [{"nodes": [0]}],
+        "scene": 0,
+    }
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    binary = pos + idx + b"\0" * (-(len(pos) + len(idx)) % 4)
+    chunks = (
+        len(text).to_bytes(4, "little")
+        + b"JSON"
+        + text
+        + len(binary).to_bytes(4, "little")
+        + b"BIN\0"
+        + binary
+    )
+    header = b"glTF" + (2).to_bytes(4, "little") + (12 + len(chunks)).to_bytes(4, "little")
+    path.write_bytes(header + chunks)
 
 
 def test_diameter_of_a_box_is_its_space_diagonal(tmp_path: Path) -> None:
     # sampled surface points reach the corners only approximately: 1 % tolerance
     pts, _, _ = load_surface(_box_mesh(tmp_path / "b.ply", (0.3, 0.2, 0.1)), ModelOptions())
     assert diameter_m(pts) == pytest.approx(np.sqrt(0.3**2 + 0.2**2 + 0.1**2), rel=0.01)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".glb", ".off"])
+def test_every_mesh_format_loads_with_the_same_extent(tmp_path: Path, suffix: str) -> None:
+    # the issue's mesh formats, each written by Open3D; 2 % sampling tolerance on the extent
+    pts, normals, _ = load_surface(_box_mesh(tmp_path / f"box{suffix}", (0.3, 0.2, 0.1)), FAST)
+    assert np.ptp(pts, axis=0) == pytest.approx([0.3, 0.2, 0.1], rel=0.02)
+    assert np.linalg.norm(normals, axis=1) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".ply"])
+def test_point_cloud_files_load_and_get_normals(tmp_path: Path, suffix: str) -> None:
+    # a cloud without normals (box surface samples): normals are estimated, unit length
+    box = o3d.geometry.TriangleMesh.create_box(0.3, 0.2, 0.1)
+    o3d.utility.random.seed(1)
+    cloud = box.sample_points_uniformly(5000)
+    cloud.normals = o3d.utility.Vector3dVector()
+    path = tmp_path / f"cloud{suffix}"
+    o3d.io.write_point_cloud(str(path), cloud)
+    pts, normals, _ = load_surface(path, FAST)
+    assert np.ptp(pts, axis=0) == pytest.approx([0.3, 0.2, 0.1], rel=0.02)
+    assert np.linalg.norm(normals, axis=1) == pytest.approx(1.0, abs=1e-6)
 
 
 @pytest.mark.parametrize(("units", "scale"), [("m", 1.0), ("cm", 100.0), ("mm", 1000.0)])

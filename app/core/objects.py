@@ -46,6 +46,32 @@ def parse_symmetry(value: str | None) -> dict[str, Any]:
     return spec
 
 
+def format_problem(suffix: str, head: bytes, size_bytes: int) -> str | None:
+    """Why the file's first bytes ``head`` cannot be a ``suffix`` model file, or None when
+    they can. A cheap check of the format's signature at upload; a file that passes may
+    still fail its preparation job (no triangles, non-finite vertices)."""
+    text_like = b"\0" not in head
+    stripped = head.lstrip()
+    if suffix == ".ply" and not head.startswith(b"ply"):
+        return "a PLY file starts with the line 'ply'"
+    if suffix == ".glb" and not head.startswith(b"glTF"):
+        return "a binary glTF (.glb) file starts with the bytes 'glTF'"
+    if suffix == ".off":
+        first = stripped.split(maxsplit=1)[0] if stripped else b""
+        if not first.endswith(b"OFF"):
+            return "an OFF file starts with the keyword OFF"
+    if suffix == ".stl":
+        binary = size_bytes >= 84 and len(head) >= 84
+        count = int.from_bytes(head[80:84], "little") if binary else -1
+        if not (stripped.startswith(b"solid") or size_bytes == 84 + 50 * count):
+            return "neither ASCII STL ('solid ...') nor binary STL (84 + 50 × triangles bytes)"
+    if suffix == ".obj" and not (text_like and b"v " in head):
+        return "an OBJ file is text with vertex lines ('v x y z')"
+    if suffix == ".pcd" and b"FIELDS" not in head[:4096]:
+        return "a PCD file has a header with a FIELDS line"
+    return None
+
+
 def create(
     session: Session,
     storage: LocalStorage,
@@ -58,7 +84,8 @@ def create(
     max_bytes: int,
 ) -> tuple[LibraryObject, Job]:
     """Store the model file and queue its preparation. 422 for a bad name, unit, suffix,
-    symmetry or an empty file; 413 past ``max_bytes``; 409 when the name is taken."""
+    symmetry, an empty file or one whose content is not its format; 413 past
+    ``max_bytes``; 409 when the name is taken."""
     name = name.strip()
     if not name:
         raise InvalidInput("name: the detector class name of the object")
@@ -86,6 +113,11 @@ def create(
     if blob.size_bytes == 0:
         storage.delete_prefix(f"objects/{object_id}")
         raise InvalidInput(f"file: {filename!r} is empty")
+    with storage.open(key) as stored:
+        problem = format_problem(suffix, stored.read(65536), blob.size_bytes)
+    if problem is not None:
+        storage.delete_prefix(f"objects/{object_id}")
+        raise InvalidInput(f"file: {filename!r} is not a {suffix} model: {problem}")
     obj = LibraryObject(
         id=object_id,
         name=name,

@@ -280,8 +280,7 @@ def compare_snapshots(
     cand_removed = np.flatnonzero(c2c.removed > dist_removed.threshold).astype(np.int64)
     n_cand = {"added": int(cand_added.size), "removed": int(cand_removed.size)}
     # growth candidates: above the lower threshold (grow_groups keeps those within reach)
-    reach = options.grow_max_diameters * max(class_diameters_m.values(), default=0.0)
-    grow_max = {"added": reach, "removed": reach}
+    reach_m = options.grow_max_diameters * max(class_diameters_m.values(), default=0.0)
     low_added = low_removed = None
     if dist_added.grow_threshold is not None and dist_removed.grow_threshold is not None:
         low_added = np.flatnonzero(c2c.added > dist_added.grow_threshold)
@@ -305,7 +304,7 @@ def compare_snapshots(
         after,
         cand_added,
         low_added,
-        grow_max["added"],
+        reach_m,
         stats_a.spacing,
         vis_after,
         classes,
@@ -318,7 +317,7 @@ def compare_snapshots(
         before,
         cand_removed,
         low_removed,
-        grow_max["removed"],
+        reach_m,
         stats_b.spacing,
         vis_before,
         classes,

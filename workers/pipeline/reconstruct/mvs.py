@@ -144,8 +144,10 @@ def select_neighbours(
             # loses the surface outside its window: rank those after every one that fits
             depth = np.linalg.norm(a, axis=1)
             baseline_px = focal[i] * float(np.linalg.norm(centres[j] - centres[i]))
-            span = baseline_px * (1.15 / np.percentile(depth, 1) - 0.85 / np.percentile(depth, 99))
-            fits = span + 4.0 <= options.max_disparities
+            far, near = _window_ends(
+                baseline_px / np.percentile(depth, 99), baseline_px / np.percentile(depth, 1)
+            )
+            fits = near - far <= options.max_disparities
             scores.append((float(fits), float(shared[i, j]) * weight, j))
         scores.sort(reverse=True)
         # a pair runs once and gives depth to both views: skip partners that already chose i
@@ -160,6 +162,12 @@ def _ceil16(v: float) -> int:
     return int(np.ceil(v / 16.0) * 16)
 
 
+def _window_ends(low_px: float, high_px: float) -> tuple[float, float]:
+    """(far, near) disparity ends in px around the sparse points' 1st and 99th percentile
+    disparities ``low_px`` and ``high_px``: × 0.85 − 2 px and × 1.15 + 2 px of margin."""
+    return low_px * 0.85 - 2.0, high_px * 1.15 + 2.0
+
+
 def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int, int]:
     """SGBM (minDisparity, numDisparities) for a pair from its sparse points' disparities (px).
 
@@ -169,8 +177,8 @@ def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int
     is wider than the budget, the window holds the most sparse points instead.
     """
     d = np.sort(np.asarray(disparities, dtype=np.float64))
-    near = float(np.percentile(d, 99)) * 1.15 + 2.0
-    far = max(0.0, float(np.percentile(d, 1)) * 0.85 - 2.0)
+    far, near = _window_ends(float(np.percentile(d, 1)), float(np.percentile(d, 99)))
+    far = max(0.0, far)
     if near - far <= max_disparities:
         min_disp = max(0, int(np.ceil(near)) - max_disparities)
         return min_disp, max(16, min(max_disparities, _ceil16(near - min_disp)))

@@ -8,7 +8,7 @@ import pytest
 from tests.workers.pipeline.test_compare_changes import BASE, CAMS, run
 from tests.workers.pipeline.test_compare_scene import Obj, capture, crate
 from workers.pipeline.compare import PRESETS
-from workers.pipeline.compare.clusters import _near_voxels, dbscan, grow_groups
+from workers.pipeline.compare.clusters import _near_voxels, dbscan, grow_bases, grow_groups
 from workers.pipeline.errors import ComparisonError
 
 
@@ -59,6 +59,36 @@ def test_a_point_reached_by_two_clusters_joins_the_nearer() -> None:
 def test_growth_rejects_a_bad_radius() -> None:
     with pytest.raises(ComparisonError):
         grow_groups([np.array([0])], _column(), np.arange(5), radius=0.0, max_distance=0.1)
+
+
+def test_base_growth_takes_the_columns_beneath_down_to_the_band() -> None:
+    # a wall of points every 2 mm (x, z), 0–10 cm high, standing on a floor (z = 0) that
+    # reaches 2 cm in front of it (y < 0); the group is the wall above 1 cm
+    xs = np.arange(0.0, 0.05, 0.002)
+    zs = np.arange(0.0, 0.1, 0.002)
+    wall = np.array([[x, 0.0, z] for x in xs for z in zs])
+    floor = np.array([[x, -y, 0.0] for x in xs for y in np.arange(0.002, 0.02, 0.002)])
+    pts = np.vstack([wall, floor])
+    group = np.flatnonzero((pts[:, 1] == 0.0) & (pts[:, 2] >= 0.01 - 1e-9))
+    (grown,) = grow_bases([group], pts, radius_xy=0.001, band_m=0.007)
+    added = np.setdiff1d(grown, group)
+    # the wall's points 4–8 mm high join (within 7 mm of the group's lowest, 1 cm); lower
+    # wall points and the floor in front do not
+    assert set(group) <= set(grown)
+    assert np.all(pts[added, 1] == 0.0)
+    np.testing.assert_allclose(np.unique(pts[added, 2]), [0.004, 0.006, 0.008], atol=1e-9)
+    # a band reaching the floor takes the wall down to it, never the floor beside the wall
+    (deep,) = grow_bases([group], pts, radius_xy=0.001, band_m=0.02)
+    assert np.all(pts[np.setdiff1d(deep, group), 1] == 0.0)
+    assert pts[deep, 2].min() == pytest.approx(0.0)
+
+
+def test_base_growth_gives_a_point_beneath_two_groups_to_the_nearer() -> None:
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.003], [0.0, 0.0, 0.01]])
+    low, high = grow_bases([np.array([1]), np.array([2])], pts, radius_xy=0.001, band_m=0.02)
+    assert low.tolist() == [0, 1] and high.tolist() == [2]
+    with pytest.raises(ComparisonError):
+        grow_bases([np.array([1])], pts, radius_xy=0.001, band_m=0.0)
 
 
 def test_growth_gives_back_the_base_of_an_added_box() -> None:

@@ -11,6 +11,13 @@ points above a lower threshold that they reach through chains of ``radius`` hops
 further than a geodesic ``max_distance``. It gives back an object's base, whose points lie
 close to the old floor and fall under the strict threshold, without letting noise seed a
 cluster of its own.
+
+Base growth then completes what even the lower threshold cuts off: an object's lowest band,
+within the growth threshold of the floor it stands on (its distance to the other capture's
+floor is its height). A cluster takes the points directly beneath its own points, in
+vertical columns of a small horizontal radius, down to a fixed band below them. The
+environment frame's +z is up (the convention :func:`workers.pipeline.pose.estimate_pose`
+uses for ``up_env``).
 """
 
 from __future__ import annotations
@@ -228,3 +235,53 @@ def merge_groups(
         members[ra] = sorted(union)
         del members[rb]
     return [members[r] for r in sorted(members)]
+
+
+def grow_bases(
+    groups: Sequence[IntArray], points_env: ArrayLike, radius_xy: float, band_m: float
+) -> list[IntArray]:
+    """Each group of indices into (N, 3) ``points_env`` with the points beneath it added.
+
+    A point outside every group joins a group when one of the group's points lies above it
+    within the square column ``|Δx|, |Δy| ≤ radius_xy`` and ``0 < Δz ≤ band_m`` (metres,
+    +z up); a point beneath several groups joins the one whose point is nearest (Chebyshev
+    distance with Δz scaled by radius_xy / band_m, among its 8 nearest members). Returns the
+    grown groups (sorted indices; each a superset of its input). Raises ComparisonError for
+    a non-positive radius or band.
+    """
+    pts = as_points(points_env, "points_env")
+    if not radius_xy > 0 or not band_m > 0:
+        raise ComparisonError(
+            f"base growth needs radius_xy > 0 and band_m > 0, got {radius_xy}, {band_m}"
+        )
+    if not groups:
+        return []
+    members = np.concatenate(groups).astype(np.int64)
+    if members.size == 0:
+        return [np.sort(g) for g in groups]
+    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
+    others = np.ones(len(pts), dtype=bool)
+    others[members] = False
+    cand = np.flatnonzero(others)
+    # cheap superset first: points in a voxel next to a member's voxel (side: the band)
+    cand = cand[_near_voxels(pts[cand], pts[members], max(band_m, radius_xy))]
+    if cand.size == 0:
+        return [np.sort(g) for g in groups]
+    # z scaled by radius_xy / band_m: the column is the upper half of the Chebyshev ball of
+    # radius radius_xy around the candidate; of its k nearest members, the nearest above it
+    scale = np.array([1.0, 1.0, radius_xy / band_m])
+    tree = cKDTree(pts[members] * scale)
+    n_near = min(8, members.size)
+    _, near = tree.query(pts[cand] * scale, n_near, p=np.inf, distance_upper_bound=radius_xy)
+    near = near.reshape(len(cand), n_near)
+    member_z = np.append(pts[members, 2], -np.inf)  # index members.size: "none found"
+    above = member_z[np.minimum(near, members.size)] > pts[cand, 2][:, None]
+    hit = above.any(axis=1)
+    first = np.argmax(above, axis=1)
+    nearest = near[np.arange(len(cand)), first]
+    label = owner[nearest[hit]]
+    added = cand[hit]
+    return [
+        np.sort(np.concatenate([g, added[label == k]])).astype(np.int64)
+        for k, g in enumerate(groups)
+    ]

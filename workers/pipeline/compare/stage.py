@@ -22,6 +22,7 @@ from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.clusters import (
     dbscan,
     groups_from_labels,
+    grow_bases,
     grow_groups,
     merge_groups,
 )
@@ -109,6 +110,7 @@ def _side_clusters(
     candidates: IntArray,
     low: IntArray | None,
     grow_max_m: float,
+    base_band_m: float,
     spacing_m: float,
     depth_maps: Sequence[DepthMap] | None,
     classes: Sequence[str],
@@ -116,9 +118,10 @@ def _side_clusters(
     options: CompareOptions,
     first_id: int,
 ) -> list[ClusterResult]:
-    """Cluster, re-project, merge, grow (through ``low`` points, when given) and identify
-    one side's candidate points (indices into the capture's cloud). Merging is decided on
-    the clusters as found (their sizes against the class diameters), before growth."""
+    """Cluster, re-project, merge, grow (through ``low`` points, when given, then down
+    ``base_band_m`` beneath, when > 0) and identify one side's candidate points (indices
+    into the capture's cloud). Merging is decided on the clusters as found (their sizes
+    against the class diameters), before growth."""
     pts = capture.points_env[candidates]
     radius = options.cluster_radius_factor * spacing_m
     labels = dbscan(pts, radius, options.cluster_min_samples, options.cluster_min_points)
@@ -162,6 +165,9 @@ def _side_clusters(
     if low is not None:
         n_seeds = [len(m) for m in merged_idx]
         merged_idx = grow_groups(merged_idx, capture.points_env, low, radius, grow_max_m)
+        if base_band_m > 0:
+            radius_xy = options.base_radius_factor * spacing_m
+            merged_idx = grow_bases(merged_idx, capture.points_env, radius_xy, base_band_m)
         merged_pixels = _visible_pixels(capture, merged_idx, depth_maps, options)
     else:
         merged_pixels = []
@@ -305,6 +311,7 @@ def compare_snapshots(
         cand_added,
         low_added,
         reach_m,
+        options.base_band_factor * (dist_added.grow_threshold or 0.0),
         stats_a.spacing,
         vis_after,
         classes,
@@ -318,6 +325,7 @@ def compare_snapshots(
         cand_removed,
         low_removed,
         reach_m,
+        options.base_band_factor * (dist_removed.grow_threshold or 0.0),
         stats_b.spacing,
         vis_before,
         classes,

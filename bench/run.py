@@ -127,6 +127,7 @@ def _scenarios(d: dict[str, Any]) -> dict[str, Any]:
             "unidentified": run["ours"].get("unidentified"),
         }
     out["robustness"] = _get(d, "robustness", "summary") or _get(d, "robustness", "error")
+    out["clean_detector"] = _get(d, "clean_detector", "summary")
     return out
 
 

@@ -1,6 +1,7 @@
 """Accuracy and timing of the reconstruct stage on a generated scene with ground truth.
 
     python bench/reconstruct_bench.py [--scene DIR] [--work DIR] [--preset default]
+        [--options '{"far_range": false}']
 
 Generates (or reuses) a synth scenario, then runs three cases on its "before" capture —
 SfM + markers (intrinsics only), known poses — and the "after" capture refined against the
@@ -78,10 +79,10 @@ def visible_surface_samples(
         d = pts - centre
         dist = np.linalg.norm(d, axis=1)
         rays = np.concatenate([np.repeat(centre[None], len(pts), 0), d / dist[:, None]], 1)
-        hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()
+        hit = scene.cast_rays(o3d.core.Tensor(rays.astype(np.float32)))["t_hit"].numpy()  # type: ignore[call-overload]
         seen[:, k] = inside & (hit >= dist - 0.002)
     keep = seen.sum(axis=1) >= min_views
-    closest = scene.compute_closest_points(o3d.core.Tensor(pts[keep].astype(np.float32)))
+    closest = scene.compute_closest_points(o3d.core.Tensor(pts[keep].astype(np.float32)))  # type: ignore[call-overload]
     normals = closest["primitive_normals"].numpy().astype(np.float64)
     return VisibleSurface(pts[keep], normals, seen[keep], poses, float(fx))
 
@@ -136,7 +137,7 @@ def cloud_metrics(
     (:func:`stereo_reachable`, a second metric beside the first, not a replacement);
     completeness by the distance of the nearest camera that sees the sample."""
     visible = surface.points
-    dist = _scene(meshes).compute_distance(o3d.core.Tensor(cloud.astype(np.float32))).numpy()
+    dist = _scene(meshes).compute_distance(o3d.core.Tensor(cloud.astype(np.float32))).numpy()  # type: ignore[call-overload]
     nn, _ = cKDTree(cloud).query(visible, k=1, workers=2)
     inner = np.linalg.norm(visible[:, :2], axis=1) <= work_radius_m
     in_cloud = np.linalg.norm(cloud[:, :2], axis=1) <= work_radius_m
@@ -185,6 +186,11 @@ def main() -> int:
     parser.add_argument("--scene", type=Path, default=Path("/tmp/twindelta_bench/scene"))
     parser.add_argument("--work", type=Path, default=Path("/tmp/twindelta_bench/work"))
     parser.add_argument("--preset", default="default")
+    parser.add_argument(
+        "--options",
+        default="{}",
+        help="JSON overrides of the preset, e.g. '{\"far_range\": false}' (the baseline)",
+    )
     parser.add_argument("--scenario", default="moved")
     parser.add_argument(
         "--cases",
@@ -200,8 +206,14 @@ def main() -> int:
         generate(args.scene, args.scenario, seed=1, options=PRESETS["demo"])
         print(f"generated scene in {time.perf_counter() - t:.1f} s")
     reference = json.loads((args.scene / "reference.json").read_text())
-    options = options_from_preset(args.preset)
-    results: dict[str, Any] = {"preset": args.preset, "scene": str(args.scene), "cases": {}}
+    overrides = json.loads(args.options)
+    options = options_from_preset(args.preset, **overrides)
+    results: dict[str, Any] = {
+        "preset": args.preset,
+        "overrides": overrides,
+        "scene": str(args.scene),
+        "cases": {},
+    }
     gt = json.loads((args.scene / "ground_truth.json").read_text())
 
     def true_cameras(capture: str) -> dict[str, Any]:

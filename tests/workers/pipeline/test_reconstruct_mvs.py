@@ -8,11 +8,15 @@ import pytest
 from tests.workers.pipeline.test_reconstruct_scene import k_matrix, render, ring_poses, texture
 from workers.pipeline.geometry import make_rigid, transform_points
 from workers.pipeline.reconstruct.align import refine_alignment
+from workers.pipeline.reconstruct.errors import DenseReconstructionFailed
 from workers.pipeline.reconstruct.mvs import (
     DenseView,
     Neighbours,
+    _far_partners,
+    _overlay_far,
     consistent_points,
     disparity_window,
+    far_disparity_window,
     pair_depths,
 )
 from workers.pipeline.reconstruct.options import ReconstructOptions
@@ -65,6 +69,30 @@ def test_consistency_filter_removes_injected_outliers() -> None:
     assert len(kept) >= 0.95 * total_true * 0.95  # some border pixels fall outside neighbours
 
 
+def test_far_pixels_use_the_far_consistency_tolerance() -> None:
+    """View 0's depth is true, its 7 neighbours' 2 % too deep. With the floor (1-1.5 m) counted
+    as far (far_min_depth_m = 0.5) and a 3 % far tolerance, view 0's pixels that its
+    neighbours see are kept; with 1 % (or the floor counted as near, at the 1 % near
+    tolerance) none is, and the stage reports an empty result."""
+    views = _views(8)
+    depths = [
+        (_true_depth(v) * (1.0 if i == 0 else 1.02)).astype(np.float32) for i, v in enumerate(views)
+    ]
+    nbrs = Neighbours(
+        stereo=tuple(() for _ in views),
+        consistency=(tuple(range(1, 8)), *(() for _ in range(7))),
+    )
+    far = ReconstructOptions(point_stride=1, far_min_depth_m=0.5, far_consistency_rel_tol=0.03)
+    kept, _ = consistent_points(views, depths, nbrs, far)
+    assert len(kept) > 0.9 * (depths[0] > 0).sum()
+    for opts in (
+        ReconstructOptions(point_stride=1, far_min_depth_m=0.5, far_consistency_rel_tol=0.01),
+        ReconstructOptions(point_stride=1, far_min_depth_m=5.0, far_consistency_rel_tol=0.03),
+    ):
+        with pytest.raises(DenseReconstructionFailed):
+            consistent_points(views, depths, nbrs, opts)
+
+
 def test_sgbm_pair_depths_are_millimetre_accurate_on_a_plane() -> None:
     """One rectified SGBM pair (about 30° apart at ~1.1 m) gives both views' depth: the median
     error over valid pixels is < 1 mm in each (HH4 SGBM; 3-way is biased by ~0.3 px on
@@ -95,6 +123,62 @@ def test_disparity_window_reaches_far_and_keeps_most_points_when_over_budget() -
     assert num == 256 and start <= 100 and start + num >= 150
 
 
+def test_far_disparity_window_covers_from_the_minimum_depth_to_infinity_within_budget() -> None:
+    """f·b = 520 px·m (650 px, 0.8 m): 3 m is 173.3 px, so 128 disparities cover 46-174 px
+    (3-11 m); with f·b = 260 the window reaches 0 px = infinity."""
+    start, num = far_disparity_window(520.0, 3.0, 128)
+    assert (start, num) == (46, 128) and start + num >= 520 / 3.0
+    assert far_disparity_window(260.0, 3.0, 128) == (0, 128)
+
+
+def test_far_partners_pair_every_view_once_with_a_wide_baseline() -> None:
+    """12 views on a ring, 30° apart, looking down at the centre (axes 18° apart for
+    neighbours, 34° two steps apart): with a 40° axis limit each view's far pair is with a
+    view two steps away (the widest allowed baseline); every view is in exactly one far
+    pair, so there are 6 pairs; with the option off there are none."""
+    poses = ring_poses(12)
+    centres = np.stack([p[:3, 3] for p in poses])
+    axes = np.stack([p[:3, 2] for p in poses])
+    shared = np.full((12, 12), 100.0, np.float32)
+    opts = ReconstructOptions(far_max_axis_angle_deg=40.0)
+    far = _far_partners(centres, axes, shared, opts)
+    pairs = {(min(i, j), max(i, j)) for i, js in enumerate(far) for j in js}
+    members = [v for pair in pairs for v in pair]
+    assert sorted(members) == list(range(12))
+    for i, j in pairs:
+        assert np.degrees(np.arccos(np.clip(axes[i] @ axes[j], -1, 1))) <= 40.0
+        assert (j - i) % 12 in (2, 10)
+    no_far = ReconstructOptions(far_range=False)
+    assert _far_partners(centres, axes, shared, no_far) == tuple(() for _ in range(12))
+
+
+def test_far_overlay_keeps_near_occluders_and_fills_the_rest() -> None:
+    """Far depth wins where the near pairs have none or see beyond far_min_depth_m; a near
+    surface (1 m) is kept even where the far pair has a (spurious) depth."""
+    near = np.array([[0.0, 1.0, 4.0, 4.0]], np.float32)
+    far = np.array([[5.0, 6.0, 4.01, 0.0]], np.float32)
+    out = _overlay_far(near, far, ReconstructOptions(far_min_depth_m=3.0))
+    assert out.tolist() == [[5.0, 1.0, np.float32(4.01), 4.0]]
+
+
+def test_far_range_pair_is_accurate_inside_its_window() -> None:
+    """The plane pair of the SGBM test run as a far-range pair whose window starts at 0.8 m
+    (the floor is 1-1.5 m away): it is as accurate as the near-range run, and restricting
+    it to the rows where the near-range maps lack depth (here: none known) matches every
+    row."""
+    views = _views(12)
+    pts = np.random.default_rng(0).uniform([-0.4, -0.4, 0.0], [0.4, 0.4, 0.0], size=(300, 3))
+    opts = ReconstructOptions(far_min_depth_m=0.8, far_max_disparities=256)
+    unknown = np.zeros(views[0].image.shape[:2], np.float32)
+    estimates = pair_depths(views[0], views[1], pts, opts, True, (unknown, unknown))
+    for view, est in zip(views[:2], estimates, strict=True):
+        true = _true_depth(view)
+        ok = (est > 0) & (true > 0)
+        assert ok.sum() > 0.5 * (true > 0).sum()
+        assert np.median(np.abs(est[ok] - true[ok])) < 0.001
+        assert est[est > 0].min() >= 0.8 * 0.99
+
+
 @pytest.mark.parametrize("opts", [ReconstructOptions(icp_voxel_m=0.01), ReconstructOptions()])
 def test_alignment_refinement_ignores_a_changed_object(opts: ReconstructOptions) -> None:
     """Reference: floor + box A. New snapshot: floor + box B elsewhere, offset by 4 mm and
@@ -113,7 +197,7 @@ def test_alignment_refinement_ignores_a_changed_object(opts: ReconstructOptions)
         p = rng.uniform(-0.1, 0.1, (6000, 3))
         axis = rng.integers(0, 3, 6000)
         p[np.arange(6000), axis] = np.sign(p[np.arange(6000), axis]) * 0.1
-        return p + np.asarray(centre) + [0, 0, 0.1]
+        return np.asarray(p + np.asarray(centre) + [0, 0, 0.1], np.float64)
 
     ref = np.concatenate([floor, wall, wall2, box([0.3, 0.2, 0.0])])
     new_true = np.concatenate([floor, wall, wall2, box([-0.4, -0.3, 0.0])])

@@ -54,10 +54,12 @@ class DenseView:
 
 @dataclass(frozen=True)
 class Neighbours:
-    """Per view: stereo partners (indices) and consistency neighbours (indices)."""
+    """Per view: stereo partners, consistency neighbours and far-range partners (indices;
+    ``far`` may be empty: no far-range pairs)."""
 
     stereo: tuple[tuple[int, ...], ...]
     consistency: tuple[tuple[int, ...], ...]
+    far: tuple[tuple[int, ...], ...] = ()
 
 
 def load_dense_views(
@@ -155,7 +157,41 @@ def select_neighbours(
         stereo.append(tuple(own[: options.pairs_per_view]))
         order = [int(j) for j in np.argsort(-shared[i]) if j != i and shared[i, j] >= 10]
         consist.append(tuple(order[: options.consistency_views]))
-    return Neighbours(tuple(stereo), tuple(consist))
+    return Neighbours(tuple(stereo), tuple(consist), _far_partners(centres, axes, shared, options))
+
+
+def _far_partners(
+    centres: FloatArray, axes: FloatArray, shared: NDArray[np.float32], options: ReconstructOptions
+) -> tuple[tuple[int, ...], ...]:
+    """Per view at most one far-range partner: the widest baseline among the views sharing ≥
+    30 sparse points with optical axes within ``far_max_axis_angle_deg``, among the views
+    not yet in a far pair when there are any. A view that is already the far partner of an
+    earlier view gets none of its own (that pair gives depth to both), so there are about
+    half as many far pairs as views."""
+    n = len(centres)
+    if not options.far_range:
+        return tuple(() for _ in range(n))
+    cos_max = np.cos(np.radians(options.far_max_axis_angle_deg))
+    far: list[tuple[int, ...]] = []
+    covered: set[int] = set()
+    for i in range(n):
+        if i in covered:
+            far.append(())
+            continue
+        ok = (axes @ axes[i] >= cos_max) & (shared[i] >= 30)
+        ok[i] = False
+        if not ok.any():
+            far.append(())
+            continue
+        free = ok.copy()
+        free[list(covered)] = False
+        if free.any():  # a partner without a far pair of its own gets one from this pair
+            ok = free
+        dist = np.where(ok, np.linalg.norm(centres - centres[i], axis=1), -1.0)
+        j = int(np.argmax(dist))
+        far.append((j,))
+        covered.update((i, j))
+    return tuple(far)
 
 
 def _ceil16(v: float) -> int:
@@ -187,6 +223,15 @@ def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int
     min_disp = int(starts[int(np.argmax(inside))])
     log.info("disparity span %.0f-%.0f px over the budget: window from %d", far, near, min_disp)
     return max(min_disp, 0), max_disparities
+
+
+def far_disparity_window(focal_baseline: float, min_depth_m: float, num: int) -> tuple[int, int]:
+    """SGBM (minDisparity, numDisparities) of a far-range pair: ``num`` disparities below
+    that of ``min_depth_m`` (``focal_baseline`` / ``min_depth_m``, px), down to 0 (infinity)
+    at most. Not from the sparse points: those a wide pair shares are mostly near ones, and
+    far, weakly textured walls have few."""
+    near = int(np.ceil(focal_baseline / min_depth_m))
+    return max(0, near - num), num
 
 
 def _depth_from_disparity(
@@ -263,10 +308,18 @@ def pair_depths(
     src: DenseView,
     points_env: FloatArray,
     options: ReconstructOptions,
+    far_range: bool = False,
+    near_depths: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Depth maps (H, W) float32 in metres (0 = unknown) of ``ref`` and of ``src`` from one
     SGBM run on the rectified pair; ``src``'s map is the ref disparity warped to it.
-    ``points_env`` (N, 3) sparse points seen by both give the disparity range.
+    ``points_env`` (N, 3) sparse points seen by both give the disparity range; with
+    ``far_range`` the window only covers depths beyond ``far_min_depth_m``
+    (:func:`far_disparity_window`). ``near_depths`` (the two views' depth maps from their
+    near-range pairs) restrict the run to the rectified rows, ± 8, where either view's known
+    depths are ≥ 5 % beyond 0.8 × ``far_min_depth_m`` (every row of a view with depth at
+    fewer than 20 % of its pixels): SGBM's time is proportional to the rows it matches, and
+    far surfaces lie in the upper half of views that look down at the scene.
     """
     w, h = ref.size
     if src.size != ref.size:
@@ -301,7 +354,12 @@ def pair_depths(
     z_rect = z_rect[z_rect > 1e-6]
     if len(z_rect) < 5:
         return empty, empty.copy()
-    min_disp, num = disparity_window(f * baseline / z_rect, options.max_disparities)
+    if far_range:
+        min_disp, num = far_disparity_window(
+            f * baseline, options.far_min_depth_m, options.far_max_disparities
+        )
+    else:
+        min_disp, num = disparity_window(f * baseline / z_rect, options.max_disparities)
 
     def canon(img: NDArray[Any]) -> NDArray[Any]:
         out = img.T if vertical else img
@@ -313,12 +371,31 @@ def pair_depths(
 
     rect: list[NDArray[np.uint8]] = []
     valid: list[NDArray[np.bool_]] = []
-    for v, r, p in ((ref, r1, p1), (src, r2, p2)):
+    want_rows = None
+    for k, (v, r, p) in enumerate(((ref, r1, p1), (src, r2, p2))):
         m1, m2 = cv2.initUndistortRectifyMap(v.k_matrix, np.zeros(5), r, p, (w, h), cv2.CV_32FC1)
         gray = cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY)
         rect.append(canon(np.asarray(cv2.remap(gray, m1, m2, cv2.INTER_LINEAR), np.uint8)))
         inside = cv2.remap(np.full((h, w), 255, np.uint8), m1, m2, cv2.INTER_NEAREST)
         valid.append(canon(np.asarray(inside, np.uint8)) > 0)
+        if near_depths is not None:
+            near = near_depths[k]
+            counts = []
+            for mask in (near > 0, near >= 0.8 * options.far_min_depth_m):
+                warped = cv2.remap(mask.astype(np.uint8), m1, m2, cv2.INTER_NEAREST)
+                counts.append(canon(np.asarray(warped, np.uint8)).sum(axis=1))
+            inside_n = valid[-1].sum(axis=1)
+            if counts[0].sum() < 0.2 * inside_n.sum():  # too little known: match every row
+                rows = inside_n > 0
+            else:
+                rows = (counts[1] >= 0.05 * np.maximum(counts[0], 1)) & (counts[1] > 0)
+            want_rows = rows if want_rows is None else want_rows | rows
+    rows_used = slice(0, rect[0].shape[0])
+    if want_rows is not None:
+        idx = np.flatnonzero(want_rows)
+        if len(idx) == 0:
+            return empty, empty.copy()
+        rows_used = slice(max(0, int(idx[0]) - 8), min(len(want_rows), int(idx[-1]) + 9))
     bs = options.sgbm_block_size
     sgbm = cv2.StereoSGBM.create(
         minDisparity=min_disp,
@@ -332,8 +409,14 @@ def pair_depths(
         speckleRange=2,
         mode=_SGBM_MODES[options.sgbm_mode],
     )
-    disp = sgbm.compute(rect[0], rect[1]).astype(np.float32) / 16.0
-    disp[(disp <= max(min_disp, 0) + 0.5) | ~valid[0] | _textureless(rect[0], bs)] = np.nan
+    disp = np.full(rect[0].shape, -1.0, np.float32)
+    disp[rows_used] = sgbm.compute(
+        np.ascontiguousarray(rect[0][rows_used]), np.ascontiguousarray(rect[1][rows_used])
+    ).astype(np.float32)
+    disp /= 16.0
+    # matches at either end of the window are surfaces outside it
+    at_ends = (disp <= max(min_disp, 0) + 0.5) | (far_range & (disp >= min_disp + num - 1.5))
+    disp[at_ends | ~valid[0] | _textureless(rect[0], bs)] = np.nan
     disp_src = _right_disparity(disp)
     disp_src[~valid[1] | _textureless(rect[1], bs)] = np.nan
     return (
@@ -357,26 +440,56 @@ def compute_depth_maps(
     estimates.
     """
     pairs = sorted({(min(i, j), max(i, j)) for i, js in enumerate(neighbours.stereo) for j in js})
+    far_pairs = sorted({(min(i, j), max(i, j)) for i, js in enumerate(neighbours.far) for j in js})
+    n_jobs = len(pairs) + len(far_pairs)
     estimates: list[list[NDArray[np.float32]]] = [[] for _ in views]
     for n, (i, j) in enumerate(pairs):
         mask = visibility[:, i] & visibility[:, j]
         depth_i, depth_j = pair_depths(views[i], views[j], points_env[mask], options)
         estimates[i].append(depth_i)
         estimates[j].append(depth_j)
-        progress("stereo", (n + 1) / len(pairs))
+        progress("stereo", (n + 1) / n_jobs)
+    near = [_combine(est, view.image.shape[:2]) for view, est in zip(views, estimates, strict=True)]
+    far_est: list[list[NDArray[np.float32]]] = [[] for _ in views]
+    for n, (i, j) in enumerate(far_pairs):
+        mask = visibility[:, i] & visibility[:, j]
+        depth_i, depth_j = pair_depths(
+            views[i], views[j], points_env[mask], options, True, (near[i], near[j])
+        )
+        far_est[i].append(depth_i)
+        far_est[j].append(depth_j)
+        progress("stereo", (len(pairs) + n + 1) / n_jobs)
     out = []
-    for view, est in zip(views, estimates, strict=True):
-        if not est:
-            out.append(np.zeros(view.image.shape[:2], np.float32))
-        elif len(est) == 1:
-            out.append(est[0])
-        else:
-            out.append(_median_of_valid(np.stack(est)))
+    for view, depth, fest in zip(views, near, far_est, strict=True):
+        if fest:
+            depth = _overlay_far(depth, _combine(fest, view.image.shape[:2]), options)
+        out.append(depth)
     return out
+
+
+def _combine(est: list[NDArray[np.float32]], shape: tuple[int, ...]) -> NDArray[np.float32]:
+    if not est:
+        return np.zeros(shape[:2], np.float32)
+    return est[0] if len(est) == 1 else _median_of_valid(np.stack(est))
+
+
+def _overlay_far(
+    near: NDArray[np.float32], far: NDArray[np.float32], options: ReconstructOptions
+) -> NDArray[np.float32]:
+    """A view's depth from its near-range pairs with the far-range pair's depth laid over it:
+    the far pair's wider baseline wins wherever it has a depth, except where the near-range
+    pairs see a surface nearer than ``far_min_depth_m`` (an occluder the far pair's window
+    cannot hold, so its match there is spurious)."""
+    use = (far > 0) & ~((near > 0) & (near < options.far_min_depth_m))
+    return np.where(use, far, near).astype(np.float32)
 
 
 def _median_of_valid(stack: NDArray[np.float32]) -> NDArray[np.float32]:
     """Per-pixel median of the valid (> 0) values of a (K, H, W) stack; 0 where none is."""
+    if len(stack) == 2:  # the mean of two, or the one valid value (no sort)
+        a, b = stack
+        both = (a > 0) & (b > 0)
+        return np.asarray(np.where(both, 0.5 * (a + b), np.maximum(a, b)), np.float32)
     valid = stack > 0
     n = valid.sum(axis=0)
     srt = np.sort(np.where(valid, stack, np.inf), axis=0)
@@ -431,7 +544,8 @@ def consistent_points(
 
     A pixel's 3D point is kept when its depth in ≥ ``consistency_min_views`` of the view's
     consistency neighbours agrees with their depth maps within ``consistency_rel_tol``
-    (relative); the kept point is the mean of its own and the agreeing back-projections.
+    (relative; ``far_consistency_rel_tol`` for depths beyond ``far_min_depth_m`` when
+    ``far_range``); the kept point is the mean of its own and the agreeing back-projections.
     Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB).
     """
     if len(views) != len(depths):
@@ -446,9 +560,13 @@ def consistent_points(
         pts32 = pts.astype(np.float32)
         support = np.zeros(len(pts), np.int32)
         acc = pts.copy()
+        rel_tol = np.full(len(pts), tol, np.float32)
+        if options.far_range:
+            far = depths[i][pix[:, 1], pix[:, 0]] >= options.far_min_depth_m
+            rel_tol[far] = options.far_consistency_rel_tol
         for j in neighbours.consistency[i]:
             z, d = _sample_depth(views[j], depths[j], pts32)
-            ok = (d > 0) & (np.abs(d - z) <= tol * z)
+            ok = (d > 0) & (np.abs(d - z) <= rel_tol * z)
             if not ok.any():
                 continue
             support += ok

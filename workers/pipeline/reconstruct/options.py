@@ -56,20 +56,22 @@ class ReconstructOptions:
     # axis is within far_max_axis_angle_deg; its SGBM window (far_max_disparities) starts at
     # far_min_depth_m and it only matches the rectified rows where the near pairs see far or
     # nothing; its depth replaces the near pairs' beyond far_min_depth_m. Known poses,
-    # generated 30-view room, one run at load 3-4: completeness 0.496 -> 0.572 (nearest camera
-    # 3.5-4.5 m: 0.45 -> 0.55; > 4.5 m: 0.13 -> 0.24), work area 0.977 -> 0.979, median
-    # 1.32 -> 1.44 mm, p95 7.1 -> 8.4 mm, for 15 more (narrower, cropped) SGBM runs. Axis
-    # limits 22°/26°/45°: 0.572/0.577/0.56; far_min_depth_m 2.5/3.5: 0.570/0.569; 96
-    # disparities: 0.568; SGBM 3-way for these pairs: 2.6× faster but 0.549 at p95 11 mm
+    # generated 30-view room, load 3-4: 15 more SGBM runs, far-pair SGBM time ~13 % of the
+    # near pairs'; completeness 0.496 -> 0.603 (with the 3 % tolerance below; nearest camera
+    # 3.5-4.5 m: 0.45 -> 0.61, > 4.5 m: 0.13 -> 0.27), median 1.32 -> 1.42 mm, p95 7.1 ->
+    # 8.5 mm. 96 disparities from 3 m: 0.613, p95 8.9 mm, but far SGBM 16-20 % of the near
+    # pairs' (known poses over 15 s on a quiet machine by our estimate); 64 from 3 m: 0.586.
+    # Axis limits 22°/26°/45° (128 from 3 m, 1 % tolerance): 0.572/0.577/0.56 vs 0.572 at
+    # 30°; SGBM 3-way for these pairs: 2.6× faster but 0.549 at p95 11 mm
     far_range: bool = True
     far_max_axis_angle_deg: float = 30.0
-    far_min_depth_m: float = 3.0
-    far_max_disparities: int = 128
+    far_min_depth_m: float = 3.5
+    far_max_disparities: int = 64
     # the consistency tolerance beyond far_min_depth_m, where one pair's depth error is
     # 1-3 cm (z²σ/(f·b): 4.5 m, 0.8 m, σ ≈ 0.35 px measured): the kept point averages more
-    # agreeing neighbours. Same run as above: 1 %/2 %/3 %/5 %: completeness 0.572/0.602/
-    # 0.613/0.619, p95 8.4/8.8/8.9/9.0 mm; one agreeing neighbour instead of two at far
-    # depths: 0.64-0.66 but p95 11.4-11.6 mm
+    # agreeing neighbours. 128 disparities from 3 m, 1 %/2 %/3 %/5 %: completeness 0.572/
+    # 0.602/0.613/0.619, p95 8.4/8.8/8.9/9.0 mm; one agreeing neighbour instead of two at
+    # far depths: 0.64-0.66 but p95 11.4-11.6 mm
     far_consistency_rel_tol: float = 0.03
     consistency_min_views: int = 2
     consistency_rel_tol: float = 0.01

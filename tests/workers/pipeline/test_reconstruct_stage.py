@@ -64,6 +64,7 @@ def test_known_poses_give_a_cloud_in_the_environment_frame(
     )
     q = res.quality
     assert q["mode"] == "known_poses" and q["frame_source"] == "camera_poses"
+    assert q["far_range"] is False  # off with known poses unless far_range_known_poses
     assert q["images_registered"] == q["images_total"] == 10
     assert q["marker_residual_m"] < 0.002
     pts, cols = read_ply(res.cloud_path)
@@ -88,6 +89,7 @@ def test_sfm_with_markers_recovers_cameras_in_metres(plane_scene: Path, tmp_path
     res = reconstruct(plane_scene / "images", tmp_path, options_from_preset(), cams, ref)
     q = res.quality
     assert q["mode"] == "sfm" and q["frame_source"] == "markers"
+    assert q["far_range"] is True
     assert q["images_registered"] == 10
     assert 0 < q["marker_residual_m"] < 0.002
     errs = [pose_error(v.env_from_cam, np.array(raw["poses"][v.name]))[0] for v in res.views]

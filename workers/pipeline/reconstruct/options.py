@@ -21,9 +21,10 @@ class ReconstructOptions:
     ``consistency_rel_tol`` (relative) with ≥ ``consistency_min_views`` of the view's
     ``consistency_views`` nearest neighbours. Each stereo pair is one SGBM run that gives
     depth to both its views; with ``far_range`` each view is also in one wide-baseline pair
-    for depths beyond ``far_min_depth_m``. Fusion voxel size ``voxel_size_m``, then optional
-    statistical outlier removal (``sor_neighbours`` > 0); ICP refinement against the previous
-    snapshot with shrinking ``icp_max_distances_m``.
+    for depths beyond ``far_min_depth_m`` (with known poses only if
+    ``far_range_known_poses``). Fusion voxel size ``voxel_size_m``, then optional statistical
+    outlier removal (``sor_neighbours`` > 0); ICP refinement against the previous snapshot
+    with shrinking ``icp_max_distances_m``.
     """
 
     preset: str = "default"
@@ -60,10 +61,13 @@ class ReconstructOptions:
     # near pairs'; completeness 0.496 -> 0.603 (with the 3 % tolerance below; nearest camera
     # 3.5-4.5 m: 0.45 -> 0.61, > 4.5 m: 0.13 -> 0.27), median 1.32 -> 1.42 mm, p95 7.1 ->
     # 8.5 mm. 96 disparities from 3 m: 0.613, p95 8.9 mm, but far SGBM 16-20 % of the near
-    # pairs' (known poses over 15 s on a quiet machine by our estimate); 64 from 3 m: 0.586.
+    # pairs'; 64 from 3 m: 0.586.
     # Axis limits 22°/26°/45° (128 from 3 m, 1 % tolerance): 0.572/0.577/0.56 vs 0.572 at
     # 30°; SGBM 3-way for these pairs: 2.6× faster but 0.549 at p95 11 mm
     far_range: bool = True
+    # with known poses only when asked: its budget is 15 s, and on a quiet machine (load
+    # 1.4-1.7, same run, 2 runs each) far pairs took it from 13.4-13.5 s to 15.6-15.9 s
+    far_range_known_poses: bool = False
     far_max_axis_angle_deg: float = 30.0
     far_min_depth_m: float = 3.5
     far_max_disparities: int = 64

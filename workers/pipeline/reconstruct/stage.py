@@ -8,6 +8,7 @@ in ``work_dir/sfm`` (resumable).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -126,8 +127,11 @@ def reconstruct(
             "NoReferenceFrame: give reference markers in the environment (reference.markers) "
             "or camera poses (env_from_cam) in cameras.json"
         )
+    if known and options.far_range and not options.far_range_known_poses:
+        options = dataclasses.replace(options, far_range=False)
     quality: dict[str, Any] = {
         "preset": options.preset,
+        "far_range": options.far_range,
         "images_total": len(names),
         "mode": "known_poses" if known else "sfm",
         "marker_residual_m": None,

@@ -437,34 +437,48 @@ def compute_depth_maps(
 
     Every stereo partnership is one undirected pair and one SGBM run, which gives depth to
     both of its views; a view in several pairs gets the per-pixel median of the valid
-    estimates.
+    estimates. The far-range pairs run after the near ones (they match only the rows where
+    those see far or nothing) and are laid over them (:func:`_overlay_far`).
     """
-    pairs = sorted({(min(i, j), max(i, j)) for i, js in enumerate(neighbours.stereo) for j in js})
-    far_pairs = sorted({(min(i, j), max(i, j)) for i, js in enumerate(neighbours.far) for j in js})
+    pairs = _undirected(neighbours.stereo)
+    far_pairs = _undirected(neighbours.far)
     n_jobs = len(pairs) + len(far_pairs)
-    estimates: list[list[NDArray[np.float32]]] = [[] for _ in views]
-    for n, (i, j) in enumerate(pairs):
-        mask = visibility[:, i] & visibility[:, j]
-        depth_i, depth_j = pair_depths(views[i], views[j], points_env[mask], options)
-        estimates[i].append(depth_i)
-        estimates[j].append(depth_j)
-        progress("stereo", (n + 1) / n_jobs)
-    near = [_combine(est, view.image.shape[:2]) for view, est in zip(views, estimates, strict=True)]
-    far_est: list[list[NDArray[np.float32]]] = [[] for _ in views]
-    for n, (i, j) in enumerate(far_pairs):
-        mask = visibility[:, i] & visibility[:, j]
-        depth_i, depth_j = pair_depths(
-            views[i], views[j], points_env[mask], options, True, (near[i], near[j])
-        )
-        far_est[i].append(depth_i)
-        far_est[j].append(depth_j)
-        progress("stereo", (len(pairs) + n + 1) / n_jobs)
+    done = 0
+
+    def run(
+        pair_list: list[tuple[int, int]], far_range: bool, near: list[NDArray[np.float32]] | None
+    ) -> list[list[NDArray[np.float32]]]:
+        """Each view's depth estimates from the pairs of ``pair_list``."""
+        nonlocal done
+        est: list[list[NDArray[np.float32]]] = [[] for _ in views]
+        for i, j in pair_list:
+            mask = visibility[:, i] & visibility[:, j]
+            near_ij = None if near is None else (near[i], near[j])
+            depth_i, depth_j = pair_depths(
+                views[i], views[j], points_env[mask], options, far_range, near_ij
+            )
+            est[i].append(depth_i)
+            est[j].append(depth_j)
+            done += 1
+            progress("stereo", done / n_jobs)
+        return est
+
+    near = [
+        _combine(est, view.image.shape[:2])
+        for view, est in zip(views, run(pairs, False, None), strict=True)
+    ]
+    far_est = run(far_pairs, True, near)
     out = []
     for view, depth, fest in zip(views, near, far_est, strict=True):
         if fest:
             depth = _overlay_far(depth, _combine(fest, view.image.shape[:2]), options)
         out.append(depth)
     return out
+
+
+def _undirected(partners: tuple[tuple[int, ...], ...]) -> list[tuple[int, int]]:
+    """The sorted undirected pairs (i < j) of per-view partner lists."""
+    return sorted({(min(i, j), max(i, j)) for i, js in enumerate(partners) for j in js})
 
 
 def _combine(est: list[NDArray[np.float32]], shape: tuple[int, ...]) -> NDArray[np.float32]:

@@ -287,11 +287,12 @@ def score(
 
 
 def oracle_metrics(
-    scene_dir: Path,
     scenario: str,
     seed: int,
     synth: Any,
     ycb: list[Any],
+    captures: dict[str, CaptureData],
+    classes: list[str],
     rows: list[dict[str, Any]],
     result: CompareResult,
 ) -> None:
@@ -299,10 +300,11 @@ def oracle_metrics(
     from these detections (``oracle_true_class_metric``): its box in every view is the true
     visible box of the object (the generator's instance buffer, re-rendered), counted in
     every view where the detector could fire (≥ its ``min_visible_px``), scored by
-    :func:`identify` against the capture's labels. It is the ceiling set by the detector's
-    misses and box jitter alone; the row's ``true_class_metric`` is ours."""
+    :func:`identify` against the capture's labels (``captures[name].detections``). It is the
+    ceiling set by the detector's misses and box jitter alone; the row's
+    ``true_class_metric`` is ours."""
     truth_scene = build_scenario(scenario, ycb, seed, synth)
-    classes = list(json.loads((scene_dir / "ground_truth.json").read_text())["classes"])
+    width, height = synth.camera.width, synth.camera.height
     clusters = {c.id: c for c in result.clusters}
     rendered: dict[str, tuple[list[str], list[dict[int, Any]]]] = {}
     for row in rows:
@@ -330,16 +332,8 @@ def oracle_metrics(
         truth_boxes = {
             v: np.asarray(b[index][:4], dtype=np.float64) for v, b in enumerate(boxes) if index in b
         }
-        raw = json.loads((scene_dir / capture / "cameras.json").read_text())["intrinsics"]
-        dets = []
-        for name in names:
-            label = scene_dir / capture / "labels" / (Path(name).stem + ".txt")
-            rows_yolo = [
-                [float(v) for v in line.split()]
-                for line in (label.read_text().splitlines() if label.is_file() else [])
-            ]
-            yolo = np.asarray(rows_yolo, dtype=np.float64).reshape(-1, 6)
-            dets.append(yolo_to_boxes(yolo, raw["width"], raw["height"]))
+        labels = captures[capture].detections
+        dets = [yolo_to_boxes(labels.get(name, np.zeros((0, 6))), width, height) for name in names]
         table = identify([truth_boxes], dets, classes)
         k = classes.index(row["object"])
         row["oracle_true_class_metric"] = float(table.metric[0, k])
@@ -438,7 +432,8 @@ def run_scenario(
     _timed(timings, "pose", t0)
     scored = score(truth, records, ours)
     t0 = time.perf_counter()
-    oracle_metrics(scene_dir, scenario, seed, synth, ycb, scored["changes"], ours)
+    captures = {"before": before, "after": after}
+    oracle_metrics(scenario, seed, synth, ycb, captures, classes, scored["changes"], ours)
     _timed(timings, "oracle", t0)
     return {
         "scene": str(scene_dir),

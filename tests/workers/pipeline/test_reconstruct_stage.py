@@ -64,7 +64,7 @@ def test_known_poses_give_a_cloud_in_the_environment_frame(
     )
     q = res.quality
     assert q["mode"] == "known_poses" and q["frame_source"] == "camera_poses"
-    assert q["far_range"] is False  # off with known poses unless far_range_known_poses
+    assert q["far_range"] is True
     assert q["images_registered"] == q["images_total"] == 10
     assert q["marker_residual_m"] < 0.002
     pts, cols = read_ply(res.cloud_path)

@@ -21,10 +21,9 @@ class ReconstructOptions:
     ``consistency_rel_tol`` (relative) with ≥ ``consistency_min_views`` of the view's
     ``consistency_views`` nearest neighbours. Each stereo pair is one SGBM run that gives
     depth to both its views; with ``far_range`` each view is also in one wide-baseline pair
-    for depths beyond ``far_min_depth_m`` (with known poses only if
-    ``far_range_known_poses``). Fusion voxel size ``voxel_size_m``, then optional statistical
-    outlier removal (``sor_neighbours`` > 0); ICP refinement against the previous snapshot
-    with shrinking ``icp_max_distances_m``.
+    for depths beyond ``far_min_depth_m``. Fusion voxel size ``voxel_size_m``, then optional
+    statistical outlier removal (``sor_neighbours`` > 0); ICP refinement against the previous
+    snapshot with shrinking ``icp_max_distances_m``.
     """
 
     preset: str = "default"
@@ -65,9 +64,9 @@ class ReconstructOptions:
     # Axis limits 22°/26°/45° (128 from 3 m, 1 % tolerance): 0.572/0.577/0.56 vs 0.572 at
     # 30°; SGBM 3-way for these pairs: 2.6× faster but 0.549 at p95 11 mm
     far_range: bool = True
-    # with known poses only when asked: its budget is 15 s, and on a quiet machine (load
-    # 1.4-1.7, same run, 2 runs each) far pairs took it from 13.4-13.5 s to 15.6-15.9 s
-    far_range_known_poses: bool = False
+    # with known poses too: on a quiet machine (load 0.9-1.3, same run, 2 runs each) far
+    # pairs took known poses from 9.6 s to 10.9 s (budget 15 s), completeness 0.496 -> 0.603.
+    # (Turned off for known poses in session 3 after 13.4 -> 15.6 s measured under load 1.4-1.7.)
     far_max_axis_angle_deg: float = 30.0
     far_min_depth_m: float = 3.5
     far_max_disparities: int = 64

@@ -8,7 +8,6 @@ in ``work_dir/sfm`` (resumable).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
@@ -127,8 +126,6 @@ def reconstruct(
             "NoReferenceFrame: give reference markers in the environment (reference.markers) "
             "or camera poses (env_from_cam) in cameras.json"
         )
-    if known and options.far_range and not options.far_range_known_poses:
-        options = dataclasses.replace(options, far_range=False)
     quality: dict[str, Any] = {
         "preset": options.preset,
         "far_range": options.far_range,

@@ -79,6 +79,26 @@ class ReconstructOptions:
     consistency_min_views: int = 2
     consistency_rel_tol: float = 0.01
     point_stride: int = 2
+    # planar prior (planar.py): planes from a first consistency pass (every
+    # planar_seed_stride-th pixel), verified plane depths where SGBM has none or a far one
+    planar_prior: bool = False
+    planar_seed_stride: int = 4
+    planar_max_planes: int = 6
+    planar_voxel_m: float = 0.03
+    planar_ransac_threshold_m: float = 0.015
+    planar_ransac_iterations: int = 512
+    planar_min_points: int = 300
+    planar_orthogonal_deg: float = 5.0
+    planar_cell_m: float = 0.25
+    planar_margin_m: float = 0.25
+    planar_ncc_scale: float = 0.25
+    planar_ncc_window: int = 5
+    planar_ncc_views: int = 4
+    planar_min_views: int = 1
+    planar_min_ncc: float = 0.8
+    planar_ncc_margin: float = 0.01
+    planar_offset_rel: float = 0.05
+    planar_snap: bool = False
     # fusion
     voxel_size_m: float = 0.0025
     # statistical outlier removal after the voxel grid (0 = off). Off by default: on the

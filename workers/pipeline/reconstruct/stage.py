@@ -8,6 +8,7 @@ in ``work_dir/sfm`` (resumable).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import time
@@ -21,7 +22,7 @@ from numpy.typing import NDArray
 
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, umeyama_similarity
-from workers.pipeline.reconstruct import fusion, known_poses, markers, mvs
+from workers.pipeline.reconstruct import fusion, known_poses, markers, mvs, planar
 from workers.pipeline.reconstruct.align import AlignmentResult, refine_alignment
 from workers.pipeline.reconstruct.cameras import CamerasSpec, CameraView
 from workers.pipeline.reconstruct.common import Progress, list_images, no_progress
@@ -212,6 +213,8 @@ def reconstruct(
                 "angle); take photos from more positions around the scene"
             )
         depths = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
+        if options.planar_prior:
+            depths = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
         raw_pts, raw_cols = mvs.consistent_points(dense_views, depths, nbrs, options, clock)
         quality["points_before_fusion"] = len(raw_pts)
         clock("fusion", 0.0)
@@ -246,6 +249,27 @@ def reconstruct(
     quality_path.write_text(json.dumps(quality, indent=1, default=_json_default))
     clock.progress("done", 1.0)
     return ReconstructionResult(cloud_path, cameras_path, quality_path, env_views, quality)
+
+
+def _planar_prior(
+    views: list[mvs.DenseView],
+    depths: list[NDArray[np.float32]],
+    nbrs: mvs.Neighbours,
+    options: ReconstructOptions,
+    clock: _Clock,
+    quality: dict[str, Any],
+) -> list[NDArray[np.float32]]:
+    """Depth maps with verified plane depths laid in (planar.py), planes detected in a
+    first consistency pass over every ``planar_seed_stride``-th pixel; records
+    ``quality["planar"]`` (planes, pixels filled, far depths replaced or snapped)."""
+    clock("planar", 0.0)
+    seed_pts, _ = mvs.consistent_points(
+        views, depths, nbrs, dataclasses.replace(options, point_stride=options.planar_seed_stride)
+    )
+    found = planar.detect_planes(seed_pts, options)
+    filled, stats = planar.fill_depths(views, depths, nbrs, found, options, clock)
+    quality["planar"] = stats
+    return filled
 
 
 def _json_default(obj: object) -> object:

@@ -1,0 +1,470 @@
+"""Planar prior for far, weakly textured surfaces (floor, walls), as in planar-prior MVS
+(ACMP, Xu & Tao 2020), on top of the SGBM depth maps.
+
+1. :func:`detect_planes`: a few dominant planes by seeded RANSAC over reliable points
+   (those that passed the multi-view consistency check), each with the cells of a 2-D
+   grid in its own coordinates where it was seen, so a plane is not extended past its
+   points beyond ``planar_margin_m``.
+2. :func:`fill_depths`: in each view, a pixel with no SGBM depth or a depth beyond
+   ``far_min_depth_m`` takes the depth of the nearest plane its ray hits inside that
+   plane's extent, but only when that depth is photometrically verified: the reference
+   patch's ZNCC against the neighbour views sampled through the plane point beats the
+   ZNCC at depths ``planar_offset_rel`` nearer and farther along the ray, and is high.
+   Neighbours whose own depth map sees something in front of the plane point are skipped
+   (occlusion), and a pixel near a nearer SGBM depth of its own view keeps no plane depth.
+
+The filled depth maps then go through the same consistency filter and fusion as the
+SGBM ones. Everything is in the env frame, metres, OpenCV camera axes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from workers.pipeline.errors import ShapeError
+from workers.pipeline.reconstruct.common import Progress, no_progress
+from workers.pipeline.reconstruct.fusion import voxel_average
+from workers.pipeline.reconstruct.mvs import DenseView, Neighbours
+from workers.pipeline.reconstruct.options import ReconstructOptions
+
+FloatArray = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class Plane:
+    """A plane n·X = ``offset_m`` in the env frame (``normal_env`` (3,) unit) and where it
+    was seen: ``occupied`` (U, V) bool cells of ``cell_m`` in the plane's own coordinates
+    u = (X − ``origin_env``)·``axes_env``[0], v = …·``axes_env``[1], cell (0, 0) starting at
+    ``lo_uv`` (2,) metres, already grown by the margin. ``inliers``: supporting points."""
+
+    normal_env: FloatArray
+    offset_m: float
+    origin_env: FloatArray
+    axes_env: FloatArray
+    lo_uv: FloatArray
+    cell_m: float
+    occupied: NDArray[np.bool_]
+    inliers: int
+
+    def contains(self, points_env: FloatArray) -> NDArray[np.bool_]:
+        """(N,) whether (N, 3) env points (assumed on the plane) fall in a seen cell."""
+        uv = (points_env - self.origin_env) @ self.axes_env.T
+        ij = np.floor((uv - self.lo_uv) / self.cell_m).astype(np.int64)
+        gu, gv = self.occupied.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < gu) & (ij[:, 1] >= 0) & (ij[:, 1] < gv)
+        out = np.zeros(len(points_env), np.bool_)
+        out[inside] = self.occupied[ij[inside, 0], ij[inside, 1]]
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "normal": [round(float(v), 5) for v in self.normal_env],
+            "offset_m": round(self.offset_m, 5),
+            "inliers": self.inliers,
+            "area_m2": round(float(self.occupied.sum()) * self.cell_m**2, 2),
+        }
+
+
+def _fit(points: FloatArray) -> tuple[FloatArray, float]:
+    """Least-squares plane (unit normal, offset) of (N, 3) points, N ≥ 3."""
+    centre = points.mean(axis=0)
+    _, _, vt = np.linalg.svd(points - centre, full_matrices=False)
+    normal = vt[2] / np.linalg.norm(vt[2])
+    return normal, float(normal @ centre)
+
+
+def _ransac(
+    points: FloatArray, threshold_m: float, iterations: int, rng: np.random.Generator
+) -> tuple[FloatArray, float, NDArray[np.bool_]]:
+    """Best plane of (N, 3) points by inlier count over ``iterations`` random triples,
+    refitted twice by least squares on its inliers; (normal, offset, inlier mask)."""
+    # hypotheses are scored on at most 4096 of the points (the counts only rank them)
+    sample = points[rng.permutation(len(points))[:4096]] if len(points) > 4096 else points
+    best_count = -1
+    best_plane = (np.array([0.0, 0.0, 1.0]), 0.0)
+    batch = 128
+    for start in range(0, iterations, batch):
+        k = min(batch, iterations - start)
+        tri = sample[rng.integers(0, len(sample), size=(k, 3))]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(normals, axis=1)
+        ok = norm > 1e-9
+        if not ok.any():
+            continue
+        normals = normals[ok] / norm[ok, None]
+        offsets = np.sum(normals * tri[ok, 0], axis=1)
+        counts = (np.abs(sample @ normals.T - offsets) <= threshold_m).sum(axis=0)
+        j = int(np.argmax(counts))
+        if counts[j] > best_count:
+            best_count, best_plane = int(counts[j]), (normals[j], float(offsets[j]))
+    normal, offset = best_plane
+    best = np.abs(points @ normal - offset) <= threshold_m
+    if best.sum() < 3:
+        return normal, offset, best
+    normal, offset = _fit(points[best])
+    for _ in range(2):
+        best = np.abs(points @ normal - offset) <= threshold_m
+        normal, offset = _fit(points[best])
+    return normal, offset, best
+
+
+def _orthogonalise(
+    points: FloatArray,
+    normal: FloatArray,
+    inliers: NDArray[np.bool_],
+    first_normal: FloatArray,
+    max_deg: float,
+    threshold_m: float,
+) -> tuple[FloatArray, float, NDArray[np.bool_]]:
+    """A plane within ``max_deg`` of perpendicular to the first (largest) plane made exactly
+    perpendicular (a wall on a floor), its offset the median over its inliers, which are
+    recounted; any other plane is returned as it is. A narrow band of far, noisy points
+    (a wall's lower edge) fixes a plane's tilt about the band poorly (2-4° measured); the
+    perpendicular is the better estimate when the fitted plane is that close to it."""
+    cos_first = float(normal @ first_normal)
+    if abs(cos_first) > np.sin(np.radians(max_deg)):
+        return normal, float(np.median(points[inliers] @ normal)), inliers
+    snapped = normal - cos_first * first_normal
+    snapped /= np.linalg.norm(snapped)
+    offset = float(np.median(points[inliers] @ snapped))
+    inl = np.abs(points @ snapped - offset) <= threshold_m
+    offset = float(np.median(points[inl] @ snapped))
+    return snapped, offset, inl
+
+
+def _extent(
+    points_env: FloatArray, normal: FloatArray, offset: float, cell_m: float, margin_m: float
+) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Plane coordinates and seen cells of the inliers (N, 3): (origin, axes (2, 3), lo_uv,
+    occupied) with the occupied cells grown by ``margin_m``."""
+    origin = normal * offset
+    helper = np.eye(3)[int(np.argmin(np.abs(normal)))]
+    axis_u = np.cross(normal, helper)
+    axis_u /= np.linalg.norm(axis_u)
+    axes = np.stack([axis_u, np.cross(normal, axis_u)])
+    uv = (points_env - origin) @ axes.T
+    grow = int(np.ceil(margin_m / cell_m))
+    lo = np.floor(uv.min(axis=0) / cell_m) * cell_m - grow * cell_m
+    ij = np.floor((uv - lo) / cell_m).astype(np.int64)
+    shape = ij.max(axis=0) + 1 + grow
+    occ = np.zeros((int(shape[0]), int(shape[1])), np.uint8)
+    occ[ij[:, 0], ij[:, 1]] = 1
+    if grow > 0:
+        occ = np.asarray(cv2.dilate(occ, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)))
+    return origin, axes, lo, occ.astype(np.bool_)
+
+
+def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[Plane]:
+    """Up to ``planar_max_planes`` dominant planes of (N, 3) reliable env points (metres).
+
+    The points are first averaged on a ``planar_voxel_m`` grid (even density). Each round
+    RANSAC (``planar_ransac_iterations`` triples, seeded by ``options.seed``, inliers within
+    ``planar_ransac_threshold_m``) takes the plane with the most points, refitted by least
+    squares; it is kept when it has ≥ ``planar_min_points`` inliers and is not a near copy
+    (within 10° and 10 cm) of one already kept, and the points within twice the threshold
+    are removed before the next round. Fewer than ``planar_min_points`` points: no planes.
+    Raises ShapeError when ``points_env`` is not (N, 3).
+    """
+    pts = np.asarray(points_env, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ShapeError(f"points_env must be (N, 3), got {pts.shape}")
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    if len(pts) == 0:
+        return []
+    rest, _ = voxel_average(pts, options.planar_voxel_m)
+    rng = np.random.default_rng(options.seed)
+    thr = options.planar_ransac_threshold_m
+    planes: list[Plane] = []
+    for _ in range(4 * options.planar_max_planes):
+        if len(planes) >= options.planar_max_planes or len(rest) < options.planar_min_points:
+            break
+        normal, offset, inl = _ransac(rest, thr, options.planar_ransac_iterations, rng)
+        if inl.sum() < options.planar_min_points:
+            break
+        duplicate = any(
+            abs(float(normal @ p.normal_env)) > np.cos(np.radians(10.0))
+            and abs(offset - p.offset_m * float(np.sign(normal @ p.normal_env))) < 0.1
+            for p in planes
+        )
+        if not duplicate and planes and options.planar_orthogonal_deg > 0:
+            normal, offset, inl = _orthogonalise(
+                rest, normal, inl, planes[0].normal_env, options.planar_orthogonal_deg, thr
+            )
+        if not duplicate:
+            origin, axes, lo, occ = _extent(
+                rest[inl], normal, offset, options.planar_cell_m, options.planar_margin_m
+            )
+            planes.append(
+                Plane(normal, offset, origin, axes, lo, options.planar_cell_m, occ, int(inl.sum()))
+            )
+        rest = rest[np.abs(rest @ normal - offset) > 2.0 * thr]
+    return planes
+
+
+def _rays_cam(k_matrix: FloatArray, width: int, height: int) -> NDArray[np.float32]:
+    """(3, H, W) float32 camera-frame rays K⁻¹ (x, y, 1) of every pixel (z = 1)."""
+    k = k_matrix
+    xs = ((np.arange(width) - k[0, 2]) / k[0, 0]).astype(np.float32)
+    ys = ((np.arange(height) - k[1, 2]) / k[1, 1]).astype(np.float32)
+    out = np.ones((3, height, width), np.float32)
+    out[0] = xs[None, :]
+    out[1] = ys[:, None]
+    return out
+
+
+def _linear(rays: NDArray[np.float32], coeffs: FloatArray) -> NDArray[np.float32]:
+    """(H, W) float32 c · r of (3, H, W) rays and a (3,) vector (linear in the pixel)."""
+    a, b, c = (float(v) for v in coeffs)
+    return np.asarray(a * rays[0] + (b * rays[1] + np.float32(c)), np.float32)
+
+
+def plane_depths(
+    view: DenseView,
+    planes: list[Plane],
+    min_cos_incidence: float = 0.1,
+    k_matrix: FloatArray | None = None,
+    size: tuple[int, int] | None = None,
+) -> tuple[F32, NDArray[np.int16]]:
+    """Camera depth (H, W) float32 metres (0 = no hit) of the nearest plane each pixel's ray
+    hits inside that plane's extent, and which plane (int16, −1 = none). The grid is the
+    view's own unless ``k_matrix`` (3, 3) and ``size`` (W, H) give a rescaled one. Hits
+    where the ray meets the plane at more than arccos(``min_cos_incidence``) from its normal
+    are ignored (grazing: the depth is too sensitive to the plane).
+
+    With r = K⁻¹ (x, y, 1) and R, C the view's env_from_cam rotation and centre, the ray
+    C + z R r meets n·X = d at camera depth z = (d − n·C) / ((Rᵀn)·r).
+    """
+    w, h = view.size if size is None else size
+    rays = _rays_cam(view.k_matrix if k_matrix is None else k_matrix, w, h)
+    rot = view.env_from_cam[:3, :3]
+    centre = view.env_from_cam[:3, 3]
+    length = np.sqrt(rays[0] ** 2 + rays[1] ** 2 + 1.0)
+    depth = np.full((h, w), np.inf, np.float32)
+    label = np.full((h, w), -1, np.int16)
+    for idx, p in enumerate(planes):
+        denom = _linear(rays, rot.T @ p.normal_env)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.float32(p.offset_m - float(p.normal_env @ centre)) / denom
+        ok = (z > 0) & (np.abs(denom) >= min_cos_incidence * length) & (z < depth)
+        ys, xs = np.nonzero(ok)
+        if len(ys) == 0:
+            continue
+        hit = centre + (rays[:, ys, xs] * z[ys, xs]).T.astype(np.float64) @ rot.T
+        inside = p.contains(hit)
+        depth[ys[inside], xs[inside]] = z[ys[inside], xs[inside]]
+        label[ys[inside], xs[inside]] = idx
+    return np.where(np.isfinite(depth), depth, 0.0).astype(np.float32), label
+
+
+def _label_depths(view: DenseView, planes: list[Plane], label: NDArray[np.int16]) -> F32:
+    """Camera depth (H, W) float32 metres of each pixel's plane ``label`` (−1: 0) on the
+    view's own grid, with no extent test (the labels come from :func:`plane_depths`)."""
+    w, h = view.size
+    depth = np.zeros((h, w), np.float32)
+    rays = _rays_cam(view.k_matrix, w, h)
+    rot = view.env_from_cam[:3, :3]
+    centre = view.env_from_cam[:3, 3]
+    for idx, p in enumerate(planes):
+        sel = label == idx
+        if not sel.any():
+            continue
+        denom = _linear(rays, rot.T @ p.normal_env)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            z = np.float32(p.offset_m - float(p.normal_env @ centre)) / denom
+        depth[sel] = np.where(z[sel] > 0, z[sel], 0.0)
+    return depth
+
+
+def _box(img: F32, win: int) -> F32:
+    return np.asarray(cv2.boxFilter(img, -1, (win, win), borderType=cv2.BORDER_REFLECT), np.float32)
+
+
+def _gray(view: DenseView, scale: float) -> F32:
+    g = cv2.cvtColor(view.image, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    if scale != 1.0:
+        w, h = view.size
+        size = (round(w * scale), round(h * scale))
+        g = np.asarray(cv2.resize(g, size, interpolation=cv2.INTER_AREA), np.float32)
+    return np.asarray(g, np.float32)
+
+
+def _scaled_k(k_matrix: FloatArray, scale: float) -> FloatArray:
+    k = k_matrix.copy()
+    k[0, 0] *= scale
+    k[1, 1] *= scale
+    k[0, 2] = (k[0, 2] + 0.5) * scale - 0.5
+    k[1, 2] = (k[1, 2] + 0.5) * scale - 0.5
+    return k
+
+
+def _check_views(
+    views: list[DenseView], neighbours: Neighbours, depths: list[F32] | None = None
+) -> None:
+    n = len(views)
+    if len(neighbours.consistency) != n or len(neighbours.stereo) != n:
+        raise ShapeError(f"{n} views but neighbour lists for {len(neighbours.consistency)}")
+    if depths is not None:
+        if len(depths) != n:
+            raise ShapeError(f"{n} views but {len(depths)} depth maps")
+        for v, d in zip(views, depths, strict=True):
+            if d.shape != v.image.shape[:2]:
+                raise ShapeError(f"{v.name}: depth map {d.shape}, image {v.image.shape[:2]}")
+
+
+def verification_views(
+    views: list[DenseView], neighbours: Neighbours, count: int
+) -> list[tuple[int, ...]]:
+    """Per view the ``count`` views with the widest baselines among its stereo, far-range
+    and consistency neighbours (either direction): wide baselines separate depths best."""
+    n = len(views)
+    cand: list[set[int]] = [set() for _ in range(n)]
+    for lists in (neighbours.stereo, neighbours.far, neighbours.consistency):
+        for i, js in enumerate(lists):
+            for j in js:
+                cand[i].add(j)
+                cand[j].add(i)
+    centres = np.stack([v.env_from_cam[:3, 3] for v in views])
+    out = []
+    for i in range(n):
+        dist = np.linalg.norm(centres - centres[i], axis=1)
+        ranked = sorted(cand[i] - {i}, key=lambda j: -float(dist[j]))
+        out.append(tuple(ranked[:count]))
+    return out
+
+
+def fill_depths(
+    views: list[DenseView],
+    depths: list[F32],
+    neighbours: Neighbours,
+    planes: list[Plane],
+    options: ReconstructOptions,
+    progress: Progress = no_progress,
+) -> tuple[list[F32], dict[str, Any]]:
+    """Depth maps (each (H, W) float32 metres, 0 = unknown) with verified plane depths laid
+    into the pixels that have no SGBM depth or one ≥ ``far_min_depth_m``, and a summary
+    (pixels filled, far depths replaced or snapped, per plane).
+
+    The test runs on a grid of ``planar_ncc_scale`` of the image size with
+    ``planar_ncc_window``² ZNCC windows against the ``planar_ncc_views`` widest-baseline
+    neighbours (:func:`verification_views`), each sampled at the plane point's projection.
+    A pixel is accepted when ≥ min(2, available) neighbours see the point unoccluded (their
+    depth there is not < (1 − 3 %) of the point's depth in them), the mean ZNCC over those is
+    ≥ ``planar_min_ncc`` and exceeds the mean ZNCC at depths × (1 ± ``planar_offset_rel``)
+    by ≥ ``planar_ncc_margin``, the reference window has texture (std ≥ 1 grey level), and
+    no own SGBM depth nearer than the plane by > 5 % lies within ``planar_ncc_window``
+    pixels. A far SGBM depth that disagrees with an accepted plane depth by more than
+    ``far_consistency_rel_tol`` is replaced; one that agrees is snapped to the plane only
+    with ``planar_snap``. Raises ShapeError on mismatched inputs.
+    """
+    _check_views(views, neighbours, depths)
+    n = len(views)
+    stats: dict[str, Any] = {
+        "planes": [p.to_json() for p in planes],
+        "pixels_filled": 0,
+        "far_pixels_replaced": 0,
+        "far_pixels_snapped": 0,
+    }
+    if not planes:
+        return [d.copy() for d in depths], stats
+    scale = options.planar_ncc_scale
+    win = options.planar_ncc_window
+    grays = [_gray(v, scale) for v in views]
+    ks = [_scaled_k(v.k_matrix, scale) for v in views]
+    small_depths = [
+        np.asarray(
+            cv2.resize(d, (g.shape[1], g.shape[0]), interpolation=cv2.INTER_NEAREST), np.float32
+        )
+        for d, g in zip(depths, grays, strict=True)
+    ]
+    check = verification_views(views, neighbours, options.planar_ncc_views)
+    eps = options.planar_offset_rel
+    margin = options.planar_ncc_margin
+    out: list[F32] = []
+    for i, view in enumerate(views):
+        w, h = view.size
+        depth = depths[i]
+        g_ref = grays[i]
+        hs, ws = g_ref.shape
+        plane_s, label_s = plane_depths(view, planes, k_matrix=ks[i], size=(ws, hs))
+        own_s = small_depths[i]
+        cand_s = (plane_s > 0) & ((own_s <= 0) | (own_s >= options.far_min_depth_m))
+        if not cand_s.any() or not check[i]:
+            out.append(depth.copy())
+            progress("planar", (i + 1) / n)
+            continue
+        # a nearer SGBM depth close by: an occluder's edge, where the plane would bleed
+        nearer = (own_s > 0) & (own_s < options.far_min_depth_m) & (own_s < 0.95 * plane_s)
+        nearer = cv2.dilate(nearer.astype(np.uint8), np.ones((win, win), np.uint8)) > 0
+        mean_r = _box(g_ref, win)
+        var_r = _box(g_ref * g_ref, win) - mean_r * mean_r
+        textured = var_r >= 1.0
+        rays = _rays_cam(ks[i], ws, hs)
+        kernel = np.ones((win, win), np.uint8)
+        scores = np.zeros((3, hs, ws), np.float32)
+        used = np.zeros((hs, ws), np.int32)
+        for j in check[i]:
+            # the point at depth z on the ray r of view i is a + z M r in view j's camera
+            j_from_i = views[j].cam_from_env @ view.env_from_cam
+            a = j_from_i[:3, 3]
+            m_rays = [_linear(rays, row) for row in j_from_i[:3, :3]]
+            kj = ks[j]
+            hj, wj = grays[j].shape
+            valid_j = np.zeros((hs, ws), np.bool_)
+            for k, factor in enumerate((1.0, 1.0 - eps, 1.0 + eps)):
+                zf = plane_s * np.float32(factor)
+                qx, qy, qz = (np.float32(a[c]) + zf * m_rays[c] for c in range(3))
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    mx = np.float32(kj[0, 0]) * qx / qz + np.float32(kj[0, 2])
+                    my = np.float32(kj[1, 1]) * qy / qz + np.float32(kj[1, 2])
+                inside = (qz > 0) & (mx >= 0) & (mx <= wj - 1) & (my >= 0) & (my <= hj - 1)
+                mx[~inside] = -1.0
+                my[~inside] = -1.0
+                if k == 0:
+                    seen = cv2.remap(small_depths[j], mx, my, cv2.INTER_NEAREST, borderValue=0.0)
+                    occluded = (seen > 0) & (seen < 0.97 * qz)
+                    full = cv2.erode(inside.astype(np.uint8), kernel) > 0
+                    valid_j = full & ~occluded & (plane_s > 0)
+                    used += valid_j
+                warped = np.asarray(
+                    cv2.remap(grays[j], mx, my, cv2.INTER_LINEAR, borderValue=0.0), np.float32
+                )
+                mean_w = _box(warped, win)
+                var_w = _box(warped * warped, win) - mean_w * mean_w
+                cov = _box(g_ref * warped, win) - mean_r * mean_w
+                ncc = cov / np.sqrt(np.maximum(var_r * var_w, 1e-6))
+                scores[k] += np.where(valid_j, ncc, 0.0).astype(np.float32)
+        need = min(options.planar_min_views, len(check[i]))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mean_scores = scores / np.maximum(used, 1)
+        accept_s = (
+            (used >= need)
+            & textured
+            & ~nearer
+            & (mean_scores[0] >= options.planar_min_ncc)
+            & (mean_scores[0] >= np.maximum(mean_scores[1], mean_scores[2]) + margin)
+        )
+        accept_s &= cand_s
+        label_acc = np.where(accept_s, label_s, -1).astype(np.int16)
+        label = np.asarray(cv2.resize(label_acc, (w, h), interpolation=cv2.INTER_NEAREST), np.int16)
+        plane_full = _label_depths(view, planes, label)
+        accept = (plane_full > 0) & ((depth <= 0) | (depth >= options.far_min_depth_m))
+        empty = accept & (depth <= 0)
+        far = accept & (depth > 0)
+        agree = far & (np.abs(depth - plane_full) <= options.far_consistency_rel_tol * plane_full)
+        replace = far & ~agree
+        new = depth.copy()
+        new[empty | replace] = plane_full[empty | replace]
+        if options.planar_snap:
+            new[agree] = plane_full[agree]
+        stats["pixels_filled"] += int(empty.sum())
+        stats["far_pixels_replaced"] += int(replace.sum())
+        stats["far_pixels_snapped"] += int(agree.sum()) if options.planar_snap else 0
+        out.append(new.astype(np.float32))
+        progress("planar", (i + 1) / n)
+    return out, stats

@@ -177,7 +177,7 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     start = [np.zeros_like(d) for d in depths]
     # view 0 knows the box (a near SGBM depth) at its pixels: those must stay as they are
     start[0] = np.where(index[0] >= 1, depths[0], 0.0).astype(np.float32)
-    filled, stats = fill_depths(views, start, _ring_neighbours(n), planes, OPTS)
+    filled, _, stats = fill_depths(views, start, _ring_neighbours(n), planes, OPTS)
     floor_px = box_px = floor_ok = box_bad = 0
     for i in range(n):
         floor = index[i] == 0
@@ -213,7 +213,7 @@ def test_fill_depths_rejects_mismatched_inputs_and_passes_through_without_planes
         fill_depths(views, depths[:-1], nbrs, [], OPTS)
     with pytest.raises(ShapeError):
         fill_depths(views, [d[:-1] for d in depths], nbrs, [], OPTS)
-    out, stats = fill_depths(views, depths, nbrs, [], OPTS)
+    out, _, stats = fill_depths(views, depths, nbrs, [], OPTS)
     assert stats["pixels_filled"] == 0
     assert all(np.array_equal(a, b) for a, b in zip(out, depths, strict=True))
 

@@ -77,7 +77,11 @@ def test_known_poses_give_a_cloud_in_the_environment_frame(
     written = json.loads(res.cameras_path.read_text())["images"]
     for name, pose in raw["poses"].items():
         np.testing.assert_allclose(written[name]["env_from_cam"], pose, atol=1e-12)
-    assert set(q["timings_s"]) >= {"sparse", "stereo", "consistency", "fusion", "total"}
+    assert set(q["timings_s"]) >= {"sparse", "stereo", "planar", "consistency", "fusion", "total"}
+    # the planar prior finds the floor (z = 0 within 2 mm) and reports what it filled
+    floor = q["planar"]["planes"][0]
+    assert abs(abs(floor["normal"][2]) - 1.0) < 1e-3 and abs(floor["offset_m"]) < 0.002
+    assert q["planar"]["pixels_filled"] >= 0 and q["planar"]["far_pixels_snapped"] == 0
 
 
 def test_sfm_with_markers_recovers_cameras_in_metres(plane_scene: Path, tmp_path: Path) -> None:

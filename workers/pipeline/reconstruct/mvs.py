@@ -553,6 +553,7 @@ def consistent_points(
     neighbours: Neighbours,
     options: ReconstructOptions,
     progress: Progress = no_progress,
+    verified: list[NDArray[np.bool_]] | None = None,
 ) -> tuple[FloatArray, NDArray[np.uint8]]:
     """Fused points that pass the geometric consistency check, and their RGB colours.
 
@@ -560,15 +561,32 @@ def consistent_points(
     consistency neighbours agrees with their depth maps within ``consistency_rel_tol``
     (relative; ``far_consistency_rel_tol`` for depths beyond ``far_min_depth_m`` when
     ``far_range``); the kept point is the mean of its own and the agreeing back-projections.
+    Pixels set in ``verified`` (per view (H, W) bool: depths already verified
+    photometrically, e.g. plane depths) need ≥ ``planar_consistency_min_views`` instead,
+    and those at ≥ ``far_min_depth_m`` are taken from every ``planar_far_row_stride``-th
+    row (not only every ``point_stride``-th).
     Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB).
     """
     if len(views) != len(depths):
         raise ShapeError(f"{len(views)} views but {len(depths)} depth maps")
+    if verified is not None and [m.shape for m in verified] != [d.shape for d in depths]:
+        raise ShapeError("verified masks must match the depth maps one to one")
     all_pts: list[FloatArray] = []
     all_cols: list[NDArray[np.uint8]] = []
     tol = options.consistency_rel_tol
     for i, view in enumerate(views):
         pts, pix = backproject(view, depths[i], options.point_stride)
+        rows = options.planar_far_row_stride
+        if verified is not None and rows < options.point_stride:
+            # verified far depths (plane depths) also on the rows between the grid's: seen
+            # at a grazing angle, a far floor pixel's footprint is 2-5× longer than wide
+            far_plane = verified[i] & (depths[i] >= options.far_min_depth_m)
+            cols = options.point_stride
+            extra = np.zeros_like(depths[i])
+            extra[::rows, ::cols] = np.where(far_plane, depths[i], 0.0)[::rows, ::cols]
+            extra[::cols, ::cols] = 0.0
+            more_pts, more_pix = backproject(view, extra, 1)
+            pts, pix = np.concatenate([pts, more_pts]), np.concatenate([pix, more_pix])
         if len(pts) == 0:
             continue
         pts32 = pts.astype(np.float32)
@@ -588,7 +606,10 @@ def consistent_points(
             centre = views[j].env_from_cam[:3, 3]
             scale = (d[ok] / z[ok]).astype(np.float64)
             acc[ok] += centre + (pts[ok] - centre) * scale[:, None]
-        keep = support >= options.consistency_min_views
+        need = np.full(len(pts), options.consistency_min_views, np.int32)
+        if verified is not None:
+            need[verified[i][pix[:, 1], pix[:, 0]]] = options.planar_consistency_min_views
+        keep = support >= need
         if keep.any():
             all_pts.append(acc[keep] / (1.0 + support[keep, None]))
             bgr = view.image[pix[keep, 1], pix[keep, 0]]

@@ -345,7 +345,7 @@ def fill_depths(
     planes: list[Plane],
     options: ReconstructOptions,
     progress: Progress = no_progress,
-) -> tuple[list[F32], dict[str, Any]]:
+) -> tuple[list[F32], list[NDArray[np.bool_]], dict[str, Any]]:
     """Depth maps (each (H, W) float32 metres, 0 = unknown) with verified plane depths laid
     into the pixels that have no SGBM depth or one ≥ ``far_min_depth_m``, and a summary
     (pixels filled, far depths replaced or snapped, per plane).
@@ -371,7 +371,7 @@ def fill_depths(
         "far_pixels_snapped": 0,
     }
     if not planes:
-        return [d.copy() for d in depths], stats
+        return [d.copy() for d in depths], [np.zeros(d.shape, np.bool_) for d in depths], stats
     scale = options.planar_ncc_scale
     win = options.planar_ncc_window
     grays = [_gray(v, scale) for v in views]
@@ -386,6 +386,7 @@ def fill_depths(
     eps = options.planar_offset_rel
     margin = options.planar_ncc_margin
     out: list[F32] = []
+    from_plane: list[NDArray[np.bool_]] = []
     for i, view in enumerate(views):
         w, h = view.size
         depth = depths[i]
@@ -396,6 +397,7 @@ def fill_depths(
         cand_s = (plane_s > 0) & ((own_s <= 0) | (own_s >= options.far_min_depth_m))
         if not cand_s.any() or not check[i]:
             out.append(depth.copy())
+            from_plane.append(np.zeros(depth.shape, np.bool_))
             progress("planar", (i + 1) / n)
             continue
         # a nearer SGBM depth close by: an occluder's edge, where the plane would bleed
@@ -466,5 +468,6 @@ def fill_depths(
         stats["far_pixels_replaced"] += int(replace.sum())
         stats["far_pixels_snapped"] += int(agree.sum()) if options.planar_snap else 0
         out.append(new.astype(np.float32))
+        from_plane.append(empty | replace | (agree & options.planar_snap))
         progress("planar", (i + 1) / n)
-    return out, stats
+    return out, from_plane, stats

@@ -213,9 +213,12 @@ def reconstruct(
                 "angle); take photos from more positions around the scene"
             )
         depths = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
+        verified = None
         if options.planar_prior:
-            depths = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
-        raw_pts, raw_cols = mvs.consistent_points(dense_views, depths, nbrs, options, clock)
+            depths, verified = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
+        raw_pts, raw_cols = mvs.consistent_points(
+            dense_views, depths, nbrs, options, clock, verified
+        )
         quality["points_before_fusion"] = len(raw_pts)
         clock("fusion", 0.0)
         cloud_pts, cloud_cols = fusion.fuse_points(raw_pts, raw_cols, options)
@@ -258,18 +261,19 @@ def _planar_prior(
     options: ReconstructOptions,
     clock: _Clock,
     quality: dict[str, Any],
-) -> list[NDArray[np.float32]]:
-    """Depth maps with verified plane depths laid in (planar.py), planes detected in a
-    first consistency pass over every ``planar_seed_stride``-th pixel; records
-    ``quality["planar"]`` (planes, pixels filled, far depths replaced or snapped)."""
+) -> tuple[list[NDArray[np.float32]], list[NDArray[np.bool_]]]:
+    """Depth maps with verified plane depths laid in (planar.py) and the masks of those
+    pixels, planes detected in a first consistency pass over every
+    ``planar_seed_stride``-th pixel; records ``quality["planar"]`` (planes, pixels filled,
+    far depths replaced or snapped)."""
     clock("planar", 0.0)
     seed_pts, _ = mvs.consistent_points(
         views, depths, nbrs, dataclasses.replace(options, point_stride=options.planar_seed_stride)
     )
     found = planar.detect_planes(seed_pts, options)
-    filled, stats = planar.fill_depths(views, depths, nbrs, found, options, clock)
+    filled, from_plane, stats = planar.fill_depths(views, depths, nbrs, found, options, clock)
     quality["planar"] = stats
-    return filled
+    return filled, from_plane
 
 
 def _json_default(obj: object) -> object:

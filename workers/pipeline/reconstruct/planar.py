@@ -347,14 +347,16 @@ def fill_depths(
     progress: Progress = no_progress,
 ) -> tuple[list[F32], list[NDArray[np.bool_]], dict[str, Any]]:
     """Depth maps (each (H, W) float32 metres, 0 = unknown) with verified plane depths laid
-    into the pixels that have no SGBM depth or one ≥ ``far_min_depth_m``, and a summary
-    (pixels filled, far depths replaced or snapped, per plane).
+    into the pixels that have no SGBM depth or one ≥ ``far_min_depth_m``, the (H, W) bool
+    masks of the pixels whose depth now comes from a plane, and a summary (the planes,
+    pixels filled, far depths replaced or snapped).
 
     The test runs on a grid of ``planar_ncc_scale`` of the image size with
     ``planar_ncc_window``² ZNCC windows against the ``planar_ncc_views`` widest-baseline
     neighbours (:func:`verification_views`), each sampled at the plane point's projection.
-    A pixel is accepted when ≥ min(2, available) neighbours see the point unoccluded (their
-    depth there is not < (1 − 3 %) of the point's depth in them), the mean ZNCC over those is
+    A pixel is accepted when ≥ ``planar_min_views`` of them (or all there are) see the point
+    unoccluded and whole windows inside their image (an occluded one: its depth there is
+    < (1 − 3 %) of the point's depth in it), the mean ZNCC over those is
     ≥ ``planar_min_ncc`` and exceeds the mean ZNCC at depths × (1 ± ``planar_offset_rel``)
     by ≥ ``planar_ncc_margin``, the reference window has texture (std ≥ 1 grey level), and
     no own SGBM depth nearer than the plane by > 5 % lies within ``planar_ncc_window``

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from tests.workers.pipeline.test_reconstruct_scene import k_matrix, ring_poses
 from workers.pipeline.errors import ShapeError
-from workers.pipeline.reconstruct.mvs import DenseView, Neighbours, consistent_points
+from workers.pipeline.reconstruct.mvs import DenseView, Neighbours, consistent_points_split
 from workers.pipeline.reconstruct.options import ReconstructOptions
 from workers.pipeline.reconstruct.planar import (
     detect_planes,
@@ -169,15 +169,18 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     box standing on it, whose rays also meet the floor plane behind it, takes the floor's
     depth at fewer than 1 % of its pixels (0.6 % measured, on the box top's smooth texture
     at a quarter of the image size), and none of those passes the consistency filter: no
-    fused point is > 2 cm from the true surface. Pixels with a near SGBM depth keep it."""
+    fused point is > 2 cm from the true surface. Pixels with a near SGBM depth keep it, and
+    the points are flagged by source (plane or measured)."""
     views, depths, index = scene
     n = len(views)
     rng = np.random.default_rng(2)
     planes = detect_planes(np.c_[rng.uniform(-1.4, 1.4, (4000, 2)), np.zeros(4000)], OPTS)
     start = [np.zeros_like(d) for d in depths]
-    # view 0 knows the box (a near SGBM depth) at its pixels: those must stay as they are
-    start[0] = np.where(index[0] >= 1, depths[0], 0.0).astype(np.float32)
-    filled, _, stats = fill_depths(views, start, _ring_neighbours(n), planes, OPTS)
+    # views 7, 0 and 1 know the box (a near SGBM depth) at its pixels: those must stay
+    known = (7, 0, 1)
+    for i in known:
+        start[i] = np.where(index[i] >= 1, depths[i], 0.0).astype(np.float32)
+    filled, from_plane, stats = fill_depths(views, start, _ring_neighbours(n), planes, OPTS)
     floor_px = box_px = floor_ok = box_bad = 0
     for i in range(n):
         floor = index[i] == 0
@@ -186,22 +189,28 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
         floor_ok += int((floor & got).sum())
         assert np.max(np.abs(filled[i][floor & got] - depths[i][floor & got])) < 0.001
         box = index[i] >= 1
-        if i == 0:
-            assert np.array_equal(filled[0][box], start[0][box])
+        if i in known:
+            assert np.array_equal(filled[i][box], start[i][box])
         else:
             box_px += int(box.sum())
             box_bad += int((box & got).sum())
     assert floor_ok > 0.5 * floor_px
     assert box_bad < 0.01 * box_px
-    pts, _ = consistent_points(views, filled, _ring_neighbours(n), replace(OPTS, point_stride=1))
+    pairs = list(zip(filled, start, strict=True))
+    assert all(np.array_equal(m, f != s) for m, (f, s) in zip(from_plane, pairs, strict=True))
+    opts = replace(OPTS, point_stride=1)
+    pts, _, src, depth_m = consistent_points_split(
+        views, filled, _ring_neighbours(n), opts, verified=from_plane
+    )
     # distance to the floor or to the cube (|x|, |y| ≤ 0.2, 0 ≤ z ≤ 0.4)
     q = np.abs(pts - [0.0, 0.0, 0.2]) - 0.2
     to_cube = np.abs(np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0))
     assert len(pts) > 100_000
     assert np.max(np.minimum(np.abs(pts[:, 2]), to_cube)) < 0.02
-    assert stats["pixels_filled"] == sum(int((f > 0).sum()) for f in filled) - int(
-        (start[0] > 0).sum()
-    )
+    # the points from plane depths are flagged; the known views' measured box points are not
+    assert src.sum() > 100_000 and (~src).sum() > 0 and np.all(to_cube[~src] < 0.002)
+    assert len(depth_m) == len(pts) and depth_m.min() > 0.5 and depth_m.max() < 4.0  # ring at 1.2 m
+    assert stats["pixels_filled"] == sum(int((f > 0).sum() - (s > 0).sum()) for f, s in pairs)
 
 
 def test_fill_depths_rejects_mismatched_inputs_and_passes_through_without_planes(

@@ -555,6 +555,19 @@ def consistent_points(
     progress: Progress = no_progress,
     verified: list[NDArray[np.bool_]] | None = None,
 ) -> tuple[FloatArray, NDArray[np.uint8]]:
+    """The points and colours of :func:`consistent_points_split`, without their source."""
+    out = consistent_points_split(views, depths, neighbours, options, progress, verified)
+    return out[0], out[1]
+
+
+def consistent_points_split(
+    views: list[DenseView],
+    depths: list[NDArray[np.float32]],
+    neighbours: Neighbours,
+    options: ReconstructOptions,
+    progress: Progress = no_progress,
+    verified: list[NDArray[np.bool_]] | None = None,
+) -> tuple[FloatArray, NDArray[np.uint8], NDArray[np.bool_], NDArray[np.float32]]:
     """Fused points that pass the geometric consistency check, and their RGB colours.
 
     A pixel's 3D point is kept when its depth in ≥ ``consistency_min_views`` of the view's
@@ -565,7 +578,8 @@ def consistent_points(
     photometrically, e.g. plane depths) need ≥ ``planar_consistency_min_views`` instead,
     and those at ≥ ``far_min_depth_m`` are taken from every ``planar_far_row_stride``-th
     row (not only every ``point_stride``-th).
-    Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB).
+    Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB, (M,) bool: from a ``verified``
+    pixel, (M,) float32: the depth in metres the point had in its own view).
     """
     if len(views) != len(depths):
         raise ShapeError(f"{len(views)} views but {len(depths)} depth maps")
@@ -573,6 +587,8 @@ def consistent_points(
         raise ShapeError("verified masks must match the depth maps one to one")
     all_pts: list[FloatArray] = []
     all_cols: list[NDArray[np.uint8]] = []
+    all_src: list[NDArray[np.bool_]] = []
+    all_depth: list[NDArray[np.float32]] = []
     tol = options.consistency_rel_tol
     for i, view in enumerate(views):
         pts, pix = backproject(view, depths[i], options.point_stride)
@@ -607,11 +623,15 @@ def consistent_points(
             scale = (d[ok] / z[ok]).astype(np.float64)
             acc[ok] += centre + (pts[ok] - centre) * scale[:, None]
         need = np.full(len(pts), options.consistency_min_views, np.int32)
+        src = np.zeros(len(pts), np.bool_)
         if verified is not None:
-            need[verified[i][pix[:, 1], pix[:, 0]]] = options.planar_consistency_min_views
+            src = verified[i][pix[:, 1], pix[:, 0]]
+            need[src] = options.planar_consistency_min_views
         keep = support >= need
         if keep.any():
             all_pts.append(acc[keep] / (1.0 + support[keep, None]))
+            all_src.append(src[keep])
+            all_depth.append(depths[i][pix[keep, 1], pix[keep, 0]])
             bgr = view.image[pix[keep, 1], pix[keep, 0]]
             all_cols.append(np.ascontiguousarray(bgr[:, ::-1]))
         progress("consistency", (i + 1) / len(views))
@@ -620,4 +640,9 @@ def consistent_points(
             "no depth survived the multi-view consistency check; the scene may lack texture "
             "or the photos may not overlap enough"
         )
-    return np.concatenate(all_pts), np.concatenate(all_cols).astype(np.uint8)
+    return (
+        np.concatenate(all_pts),
+        np.concatenate(all_cols).astype(np.uint8),
+        np.concatenate(all_src),
+        np.concatenate(all_depth),
+    )

@@ -200,6 +200,7 @@ def reconstruct(
     if pycolmap.has_cuda and sparse is not None:  # pragma: no cover - no CUDA here
         clock("dense", 0.0)
         cloud_pts, cloud_cols = _cuda_dense(Path(images_dir), work_dir, sparse)
+        measured_pts = cloud_pts
         quality["dense_method"] = "colmap_patch_match"
     else:
         clock("load", 0.0)
@@ -216,12 +217,18 @@ def reconstruct(
         verified = None
         if options.planar_prior:
             depths, verified = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
-        raw_pts, raw_cols = mvs.consistent_points(
+        raw_pts, raw_cols, from_plane, raw_depth = mvs.consistent_points_split(
             dense_views, depths, nbrs, options, clock, verified
         )
         quality["points_before_fusion"] = len(raw_pts)
         clock("fusion", 0.0)
         cloud_pts, cloud_cols = fusion.fuse_points(raw_pts, raw_cols, options)
+        measured_pts = cloud_pts
+        if from_plane.any():
+            # what the alignment to the previous snapshot follows: plane depths are a prior,
+            # and two captures' planes (or one's planes and the other's far SGBM points,
+            # biased by 2-4 mm) lie 1-2 mm apart, which pulls the ICP by as much
+            measured_pts = raw_pts[~from_plane & (raw_depth < options.far_min_depth_m)]
         quality["dense_method"] = "cpu_sgbm"
 
     alignment: AlignmentResult | None = None
@@ -230,7 +237,7 @@ def reconstruct(
         ref_pts, _ = fusion.read_ply(Path(reference_cloud))
         if len(ref_pts) == 0:
             raise InputError(f"reference cloud {reference_cloud} is empty or unreadable")
-        alignment = refine_alignment(cloud_pts, ref_pts, options)
+        alignment = refine_alignment(measured_pts, ref_pts, options)
         if alignment.applied:
             m = alignment.env_from_new
             cloud_pts = cloud_pts @ m[:3, :3].T + m[:3, 3]

@@ -5,10 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.workers.pipeline.test_compare_changes import BASE, CAMS, run
-from tests.workers.pipeline.test_compare_scene import Obj, capture, crate
+from tests.workers.pipeline.test_compare_changes import BASE, CAMS, TWIN, run
+from tests.workers.pipeline.test_compare_scene import CLASSES, DIAMETERS, Obj, capture, crate
 from workers.pipeline.compare import PRESETS
-from workers.pipeline.compare.clusters import _near_voxels, dbscan, grow_bases, grow_groups
+from workers.pipeline.compare.clusters import (
+    _near_voxels,
+    dbscan,
+    grow_bases,
+    grow_groups,
+    prune_skirts,
+)
+from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import ComparisonError
 
 
@@ -91,6 +98,58 @@ def test_base_growth_gives_a_point_beneath_two_groups_to_the_nearer() -> None:
         grow_bases([np.array([1])], pts, radius_xy=0.001, band_m=0.0)
 
 
+def _post_with_skirt_and_foot() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A square post 4 × 4 cm, 10 cm high (walls sampled every 2 mm), whose walls above
+    2 cm are the seeds; grown: its walls below 2 cm, a smeared ring of floor 2–10 mm
+    outside it at z = 3 mm, and a foot 2 mm thick reaching 10 cm out in +x.
+    Returns (points, seed indices, grown indices)."""
+    s = np.arange(0.0, 0.04 + 1e-9, 0.002)
+    zs = np.arange(0.0, 0.1, 0.002)
+    walls = [
+        [x, y, z]
+        for z in zs
+        for x, y in {(a, b) for a in s for b in (0.0, 0.04)}
+        | {(a, b) for a in (0.0, 0.04) for b in s}
+    ]
+    ring = [
+        [x, y, 0.003]
+        for x in np.arange(-0.01, 0.05 + 1e-9, 0.002)
+        for y in np.arange(-0.01, 0.05 + 1e-9, 0.002)
+        if max(-x, x - 0.04, -y, y - 0.04) >= 0.002 and x < 0.04
+    ]
+    foot = [[x, y, 0.002] for x in np.arange(0.042, 0.14, 0.002) for y in s]
+    pts = np.array(walls + ring + foot)
+    n_walls = len(walls)
+    seeds = np.flatnonzero((np.arange(len(pts)) < n_walls) & (pts[:, 2] >= 0.02))
+    grown = np.arange(len(pts))
+    return pts, seeds, grown
+
+
+def test_skirt_pruning_drops_the_smeared_floor_ring_and_keeps_walls_and_foot() -> None:
+    pts, seeds, grown = _post_with_skirt_and_foot()
+    (kept,) = prune_skirts([grown], [seeds], pts, radius_xy=0.002, rise_m=0.03, width_m=0.02)
+    dropped = np.setdiff1d(grown, kept)
+    assert set(seeds) <= set(kept)
+    walls = (pts[:, 0] >= 0) & (pts[:, 0] <= 0.04) & (pts[:, 1] >= 0) & (pts[:, 1] <= 0.04)
+    assert np.all(walls[kept] | (pts[kept, 0] > 0.04))  # nothing of the ring outside x ≤ 4 cm
+    assert not np.any(walls[dropped] & (pts[dropped, 2] > 0.003))  # the walls' feet stay
+    # the foot: its first 2 cm go with the ring, its far end (and so its extent) stays
+    foot = np.flatnonzero((pts[:, 0] > 0.041) & (pts[:, 2] == 0.002))
+    x_kept = pts[np.intersect1d(foot, kept), 0]
+    assert not np.any((x_kept > 0.043) & (x_kept < 0.059))
+    assert np.all(np.isin(foot[pts[foot, 0] > 0.061], kept))
+
+
+def test_skirt_pruning_leaves_ungrown_groups_and_rejects_bad_arguments() -> None:
+    pts, seeds, _ = _post_with_skirt_and_foot()
+    (same,) = prune_skirts([seeds], [seeds], pts, radius_xy=0.002, rise_m=0.03, width_m=0.02)
+    assert same.tolist() == sorted(seeds.tolist())
+    with pytest.raises(ComparisonError):
+        prune_skirts([seeds], [seeds], pts, radius_xy=0.0, rise_m=0.03, width_m=0.02)
+    with pytest.raises(ComparisonError):
+        prune_skirts([seeds, seeds], [seeds], pts, radius_xy=0.002, rise_m=0.03, width_m=0.02)
+
+
 def test_growth_gives_back_the_base_of_an_added_box() -> None:
     before = capture(BASE, CAMS, seed=1)
     new = crate(0.6, 0.8)
@@ -111,6 +170,36 @@ def test_growth_gives_back_the_base_of_an_added_box() -> None:
     assert found["grown"].n_points > found["strict"].n_points
     iou = {k: c.mean_iou["crate"] for k, c in found.items()}
     assert iou["grown"] > iou["strict"]
+
+
+def test_the_stage_prunes_a_smeared_ring_of_floor_around_an_added_box() -> None:
+    # stereo smears depth across an object's silhouette at its foot: here a ring of points
+    # 3–15 mm outside the new crate's footprint, floating between the lower and the strict
+    # threshold, which hysteresis growth takes in and skirt pruning must drop again
+    before = capture(BASE, CAMS, seed=1)
+    new = crate(0.6, 0.8)
+    probe = run(before, [*BASE, new]).distances["added"]
+    assert probe.grow_threshold is not None
+    height = 0.5 * (probe.grow_threshold + probe.threshold)
+    rng = np.random.default_rng(5)
+    ring = rng.uniform(
+        [0.6 - 0.215, 0.8 - 0.165, height], [0.6 + 0.215, 0.8 + 0.165, height], (1500, 3)
+    )
+    outside = np.maximum(np.abs(ring[:, 0] - 0.6) - 0.2, np.abs(ring[:, 1] - 0.8) - 0.15)
+    ring = ring[outside >= 0.003]
+    after = capture([*BASE, new], CAMS, seed=2, extra=ring)
+    width = {}
+    for name, options in {
+        "pruned": PRESETS["default"],
+        "kept": PRESETS["default"].replace(skirt_width_factor=0.0),
+    }.items():
+        res = compare_snapshots(before, after, TWIN, CLASSES, DIAMETERS, options)
+        (cluster,) = [c for c in res.clusters if c.object_name == "crate" and c.side == "added"]
+        width[name] = cluster.bbox_max[0] - cluster.bbox_min[0]
+        assert cluster.bbox_min[2] < probe.threshold - 0.01  # the crate's own base stays
+    assert width["kept"] > 0.4 + 0.02  # the ring widened it
+    # what stays of it lies within a column radius of the walls (0.75 × the ~8 mm spacing)
+    assert width["pruned"] < 0.4 + 2 * 0.0075 < width["kept"] - 0.01
 
 
 def test_growth_gives_back_the_base_of_a_removed_box() -> None:

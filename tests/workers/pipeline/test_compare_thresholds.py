@@ -90,3 +90,6 @@ def test_presets_and_overrides() -> None:
         options_from_json("default", {"no_such_option": 1})
     with pytest.raises(InputError):
         CompareOptions(cluster_min_points=0)
+    for bad in ({"skirt_width_factor": -1.0}, {"skirt_rise_m": 0.0}, {"skirt_radius_factor": 0.0}):
+        with pytest.raises(InputError, match="skirt"):
+            options_from_json("default", bad)

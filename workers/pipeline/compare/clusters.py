@@ -12,6 +12,12 @@ further than a geodesic ``max_distance``. It gives back an object's base, whose 
 close to the old floor and fall under the strict threshold, without letting noise seed a
 cluster of its own.
 
+Skirt pruning then drops what growth took of the floor around an object's foot: stereo
+smears depth across the object's silhouette there, so a thin ring of floor points floats
+above the old floor by more than the lower threshold. A grown point with none of its
+cluster's points above it, close to the cluster's seeds, is such a point; an object's own
+walls have points above them, and a low part that reaches further out keeps its far end.
+
 Base growth then completes what even the lower threshold cuts off: an object's lowest band,
 within the growth threshold of the floor it stands on (its distance to the other capture's
 floor is its height). A cluster takes the points directly beneath its own points, in
@@ -285,3 +291,54 @@ def grow_bases(
         np.sort(np.concatenate([g, added[label == k]])).astype(np.int64)
         for k, g in enumerate(groups)
     ]
+
+
+def prune_skirts(
+    grown: Sequence[IntArray],
+    seeds: Sequence[IntArray],
+    points_env: ArrayLike,
+    radius_xy: float,
+    rise_m: float,
+    width_m: float,
+) -> list[IntArray]:
+    """Each grown group of indices into (N, 3) ``points_env`` without its skirt.
+
+    A skirt point is a grown point (in ``grown[k]`` but not ``seeds[k]``) that has no
+    point of its group above it (square column ``|Δx|, |Δy| ≤ radius_xy``,
+    ``radius_xy ≤ Δz ≤ rise_m``: at least as high as the column is wide, so the skirt's own
+    noisy points do not cover each other) and lies within ``width_m`` horizontally of a
+    seed point: the ring of floor that stereo smears around an object's foot. A low part
+    that reaches further out (an L-bracket's foot) keeps all but its first ``width_m``.
+    Metres, +z up. Raises ComparisonError for non-positive lengths, ``rise_m`` ≤
+    ``radius_xy`` or mismatched lists.
+    """
+    pts = as_points(points_env, "points_env")
+    if not (radius_xy > 0 and rise_m > 0 and width_m > 0):
+        raise ComparisonError(
+            f"skirt pruning needs positive lengths, got {radius_xy}, {rise_m}, {width_m}"
+        )
+    if len(grown) != len(seeds):
+        raise ComparisonError(f"{len(grown)} grown groups but {len(seeds)} seed groups")
+    if not rise_m > radius_xy:
+        raise ComparisonError(f"skirt rise {rise_m} m must exceed the column radius {radius_xy} m")
+    # the column [radius_xy, rise_m] above a point is the Chebyshev ball of radius radius_xy
+    # around its middle once z is scaled by radius_xy / half its height
+    half = 0.5 * (rise_m - radius_xy)
+    scale = np.array([1.0, 1.0, radius_xy / half])
+    lift = np.array([0.0, 0.0, radius_xy + half])
+    out = []
+    for g, s in zip(grown, seeds, strict=True):
+        extra = np.setdiff1d(g, s)
+        if extra.size == 0 or s.size == 0:
+            out.append(np.sort(g))
+            continue
+        near_seed = cKDTree(pts[s, :2]).query(pts[extra, :2], distance_upper_bound=width_m)[0]
+        cand = extra[np.isfinite(near_seed)]
+        if cand.size:
+            tree = cKDTree(pts[g] * scale)
+            dist, _ = tree.query((pts[cand] + lift) * scale, 1, p=np.inf)
+            covered = dist < radius_xy
+            drop = cand[~covered]
+            g = np.setdiff1d(g, drop)
+        out.append(np.sort(g).astype(np.int64))
+    return out

@@ -2,7 +2,8 @@
 
 Steps: C2C both ways → thresholds → candidate points → "not seen ≠ removed" filter →
 DBSCAN per side → re-projection with visibility into the side's own capture → merging of
-split clusters → hysteresis growth through points above the lower threshold →
+split clusters → hysteresis growth through points above the lower threshold, less the
+smeared floor around each foot (skirt pruning), then the band beneath (base growth) →
 identification table (thesis eq. 3.1) → change types against the twin.
 Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
 """
@@ -25,6 +26,7 @@ from workers.pipeline.compare.clusters import (
     grow_bases,
     grow_groups,
     merge_groups,
+    prune_skirts,
 )
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.identify import containment, identify, yolo_to_boxes
@@ -164,7 +166,17 @@ def _side_clusters(
     n_seeds: list[int | None] = [None] * len(merged_idx)
     if low is not None:
         n_seeds = [len(m) for m in merged_idx]
+        seed_idx = merged_idx
         merged_idx = grow_groups(merged_idx, capture.points_env, low, radius, grow_max_m)
+        if options.skirt_width_factor > 0:
+            merged_idx = prune_skirts(
+                merged_idx,
+                seed_idx,
+                capture.points_env,
+                options.skirt_radius_factor * spacing_m,
+                options.skirt_rise_m,
+                options.skirt_width_factor * spacing_m,
+            )
         if base_band_m > 0:
             radius_xy = options.base_radius_factor * spacing_m
             merged_idx = grow_bases(merged_idx, capture.points_env, radius_xy, base_band_m)

@@ -22,7 +22,7 @@ from workers.pipeline.reconstruct.planar import (
 )
 
 W, H = 640, 480
-OPTS = ReconstructOptions(far_min_depth_m=3.5)
+OPTS = ReconstructOptions(far_min_depth_m=3.5, planar_min_depth_m=0.0)
 TEXELS_PER_M = 800
 
 
@@ -211,6 +211,18 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     assert src.sum() > 100_000 and (~src).sum() > 0 and np.all(to_cube[~src] < 0.002)
     assert len(depth_m) == len(pts) and depth_m.min() > 0.5 and depth_m.max() < 4.0  # ring at 1.2 m
     assert stats["pixels_filled"] == sum(int((f > 0).sum() - (s > 0).sum()) for f, s in pairs)
+
+
+def test_no_plane_depth_nearer_than_planar_min_depth(scene: tuple) -> None:
+    """With planar_min_depth_m = 1.6 m only floor pixels beyond it take plane depths."""
+    views, depths, _ = scene
+    rng = np.random.default_rng(2)
+    planes = detect_planes(np.c_[rng.uniform(-1.4, 1.4, (4000, 2)), np.zeros(4000)], OPTS)
+    start = [np.zeros_like(d) for d in depths]
+    opts = replace(OPTS, planar_min_depth_m=1.6)
+    filled, _, _ = fill_depths(views, start, _ring_neighbours(len(views)), planes, opts)
+    got = np.concatenate([f[f > 0] for f in filled])
+    assert len(got) > 10_000 and got.min() >= 1.6
 
 
 def test_fill_depths_rejects_mismatched_inputs_and_passes_through_without_planes(

@@ -396,7 +396,9 @@ def fill_depths(
         hs, ws = g_ref.shape
         plane_s, label_s = plane_depths(view, planes, k_matrix=ks[i], size=(ws, hs))
         own_s = small_depths[i]
-        cand_s = (plane_s > 0) & ((own_s <= 0) | (own_s >= options.far_min_depth_m))
+        cand_s = (plane_s >= options.planar_min_depth_m) & (
+            (own_s <= 0) | (own_s >= options.far_min_depth_m)
+        )
         if not cand_s.any() or not check[i]:
             out.append(depth.copy())
             from_plane.append(np.zeros(depth.shape, np.bool_))
@@ -457,7 +459,9 @@ def fill_depths(
         label_acc = np.where(accept_s, label_s, -1).astype(np.int16)
         label = np.asarray(cv2.resize(label_acc, (w, h), interpolation=cv2.INTER_NEAREST), np.int16)
         plane_full = _label_depths(view, planes, label)
-        accept = (plane_full > 0) & ((depth <= 0) | (depth >= options.far_min_depth_m))
+        accept = (plane_full >= max(options.planar_min_depth_m, 1e-6)) & (
+            (depth <= 0) | (depth >= options.far_min_depth_m)
+        )
         empty = accept & (depth <= 0)
         far = accept & (depth > 0)
         agree = far & (np.abs(depth - plane_full) <= options.far_consistency_rel_tol * plane_full)

@@ -136,6 +136,30 @@ def test_detect_planes_finds_floor_and_wall_with_their_extents() -> None:
     assert inside.all() and not outside.any()
     assert wall.contains(np.array([[2.5, 0.0, 0.2]]))[0]
     assert not wall.contains(np.array([[2.5, 0.0, 1.5], [2.5, 2.0, 0.2]])).any()
+    # the margins stop at the other plane: the floor's short of the wall, the wall's at the
+    # floor (the floor's points end at x = 2, its margin would reach 2.5 m plus a cell)
+    assert floor.contains(np.array([[2.3, 0.0, 0.0], [2.45, 0.0, 0.0]])).all()
+    assert not floor.contains(np.array([[2.55, 0.0, 0.0], [2.7, 0.5, 0.0]])).any()
+    assert wall.contains(np.array([[2.5, 0.0, 0.01]]))[0]
+    assert not wall.contains(np.array([[2.5, 0.0, -0.05], [2.5, 0.5, -0.2]])).any()
+
+
+def test_a_floor_seen_on_both_sides_of_a_face_goes_on_past_it() -> None:
+    """A machine's face (x = 0.5, |y| < 0.6, z < 0.8) stands on a floor seen all around it:
+    the floor, seen beyond the face's plane, keeps its whole extent there; the face's plane
+    still stops at the floor."""
+    rng = np.random.default_rng(1)
+    floor = np.c_[rng.uniform(-2, 2, (6000, 2)), rng.normal(0, 0.003, 6000)]
+    face = np.c_[
+        rng.normal(0.5, 0.003, 1500), rng.uniform(-0.6, 0.6, 1500), rng.uniform(0, 0.8, 1500)
+    ]
+    planes = detect_planes(np.concatenate([floor, face]), ReconstructOptions(planar_min_points=200))
+    assert len(planes) == 2
+    floor_plane, face_plane = planes
+    assert floor_plane.contains(
+        np.array([[1.5, 0.0, 0.0], [-1.5, 1.0, 0.0], [2.2, 0.0, 0.0]])
+    ).all()
+    assert not face_plane.contains(np.array([[0.5, 0.0, -0.1]]))[0]
 
 
 def test_detect_planes_rejects_bad_shapes_and_too_few_points() -> None:

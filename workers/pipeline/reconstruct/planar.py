@@ -4,7 +4,9 @@
 1. :func:`detect_planes`: a few dominant planes by seeded RANSAC over reliable points
    (those that passed the multi-view consistency check), each with the cells of a 2-D
    grid in its own coordinates where it was seen, so a plane is not extended past its
-   points beyond ``planar_margin_m``.
+   points beyond ``planar_margin_m``, nor across another plane where it was not seen
+   beyond it (a floor stops at the wall it meets: just behind the wall the floor plane is
+   close enough to the wall's depth to pass the photometric test, and it is not there).
 2. :func:`fill_depths`: in each view, a pixel with no SGBM depth or a depth beyond
    ``far_min_depth_m`` takes the depth of the nearest plane its ray hits inside that
    plane's extent, but only when that depth is photometrically verified: the reference
@@ -19,7 +21,7 @@ SGBM ones. Everything is in the env frame, metres, OpenCV camera axes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import cv2
@@ -41,7 +43,9 @@ class Plane:
     """A plane n·X = ``offset_m`` in the env frame (``normal_env`` (3,) unit) and where it
     was seen: ``occupied`` (U, V) bool cells of ``cell_m`` in the plane's own coordinates
     u = (X − ``origin_env``)·``axes_env``[0], v = …·``axes_env``[1], cell (0, 0) starting at
-    ``lo_uv`` (2,) metres, already grown by the margin. ``inliers``: supporting points."""
+    ``lo_uv`` (2,) metres, already grown by the margin;
+    ``limits_env`` the other planes' half-spaces it keeps to and ``beyond`` the cells where
+    it was seen past them (see :meth:`contains`). ``inliers``: supporting points."""
 
     normal_env: FloatArray
     offset_m: float
@@ -51,15 +55,29 @@ class Plane:
     cell_m: float
     occupied: NDArray[np.bool_]
     inliers: int
+    beyond: NDArray[np.bool_] | None = None
+    limits_env: FloatArray = field(default_factory=lambda: np.zeros((0, 4)))
 
     def contains(self, points_env: FloatArray) -> NDArray[np.bool_]:
-        """(N,) whether (N, 3) env points (assumed on the plane) fall in a seen cell."""
+        """(N,) whether (N, 3) env points (assumed on the plane) fall in its extent: an
+        ``occupied`` cell, where the point also keeps to the side of every other plane that
+        this plane's inliers are on (``limits_env`` (K, 4) rows a, b: a·X ≤ b), unless the
+        cell is within the margin of inliers beyond those limits (``beyond``). So a floor
+        stops at a wall it meets (the cells along their junction and the margin go no
+        further) and a wall at the floor, while a floor seen on both sides of a machine's
+        face goes on."""
         uv = (points_env - self.origin_env) @ self.axes_env.T
         ij = np.floor((uv - self.lo_uv) / self.cell_m).astype(np.int64)
         gu, gv = self.occupied.shape
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < gu) & (ij[:, 1] >= 0) & (ij[:, 1] < gv)
         out = np.zeros(len(points_env), np.bool_)
-        out[inside] = self.occupied[ij[inside, 0], ij[inside, 1]]
+        cells = ij[inside, 0], ij[inside, 1]
+        out[inside] = self.occupied[cells]
+        if self.beyond is not None and len(self.limits_env):
+            within = np.all(
+                points_env[inside] @ self.limits_env[:, :3].T <= self.limits_env[:, 3], axis=1
+            )
+            out[inside] &= self.beyond[cells] | within
         return out
 
     def to_json(self) -> dict[str, Any]:
@@ -168,7 +186,9 @@ def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[P
     ``planar_ransac_threshold_m``) takes the plane with the most points, refitted by least
     squares; it is kept when it has ≥ ``planar_min_points`` inliers and is not a near copy
     (within 10° and 10 cm) of one already kept, and the points within twice the threshold
-    are removed before the next round. Fewer than ``planar_min_points`` points: no planes.
+    are removed before the next round. Each plane then keeps to the side of every other
+    plane that its inliers are on, except in cells where it was seen beyond. Fewer than
+    ``planar_min_points`` points: no planes.
     Raises ShapeError when ``points_env`` is not (N, 3).
     """
     pts = np.asarray(points_env, dtype=np.float64)
@@ -181,6 +201,7 @@ def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[P
     rng = np.random.default_rng(options.seed)
     thr = options.planar_ransac_threshold_m
     planes: list[Plane] = []
+    members: list[FloatArray] = []
     for _ in range(4 * options.planar_max_planes):
         if len(planes) >= options.planar_max_planes or len(rest) < options.planar_min_points:
             break
@@ -203,8 +224,40 @@ def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[P
             planes.append(
                 Plane(normal, offset, origin, axes, lo, options.planar_cell_m, occ, int(inl.sum()))
             )
+            members.append(rest[inl])
         rest = rest[np.abs(rest @ normal - offset) > 2.0 * thr]
-    return planes
+    margin = options.planar_margin_m
+    return [
+        _with_limits(p, m, planes, 2.0 * thr, margin) for p, m in zip(planes, members, strict=True)
+    ]
+
+
+def _with_limits(
+    plane: Plane, inliers_env: FloatArray, planes: list[Plane], tol_m: float, margin_m: float
+) -> Plane:
+    """``plane`` with the half-spaces it keeps to: for every other plane, the side that its
+    (N, 3) ``inliers_env`` lie on (their mean's side); and the cells where it may cross
+    them: those holding inliers more than ``tol_m`` beyond one, grown by ``margin_m``."""
+    centre = inliers_env.mean(axis=0)
+    rows = []
+    for other in planes:
+        if other is plane:
+            continue
+        side = float(other.normal_env @ centre) - other.offset_m
+        if abs(side) < tol_m:
+            continue
+        sign = np.sign(side)  # keep sign·(n·X − d) ≥ 0, i.e. −sign·n·X ≤ −sign·d
+        rows.append([*(-sign * other.normal_env), -sign * other.offset_m])
+    limits = np.asarray(rows, np.float64).reshape(-1, 4)
+    out = inliers_env[np.any(inliers_env @ limits[:, :3].T > limits[:, 3] + tol_m, axis=1)]
+    uv = (out - plane.origin_env) @ plane.axes_env.T
+    ij = np.floor((uv - plane.lo_uv) / plane.cell_m).astype(np.int64)
+    beyond = np.zeros(plane.occupied.shape, np.uint8)
+    beyond[ij[:, 0], ij[:, 1]] = 1
+    grow = int(np.ceil(margin_m / plane.cell_m))
+    if grow > 0:
+        beyond = np.asarray(cv2.dilate(beyond, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)))
+    return replace(plane, beyond=beyond.astype(np.bool_), limits_env=limits)
 
 
 def _rays_cam(k_matrix: FloatArray, width: int, height: int) -> NDArray[np.float32]:

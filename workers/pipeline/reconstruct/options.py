@@ -82,25 +82,28 @@ class ReconstructOptions:
     # planar prior (planar.py, stage "planar"): planes by RANSAC from a first consistency
     # pass over every planar_seed_stride-th pixel (walls within planar_orthogonal_deg of
     # perpendicular to the first plane made exactly so: their narrow far bands fixed the
-    # tilt to 2-4°), plane depths where SGBM has none or a far one, each verified by ZNCC
-    # (quarter scale, 5×5) against the 4 widest-baseline neighbours: ≥ 0.8 and a peak over
-    # depths ±5 %. Verified pixels need 1 agreeing consistency neighbour, far ones are also
-    # taken on every row. Known poses, generated 30-view room (cached depth maps, same
-    # run): completeness 0.603 -> 0.909 (walls 0.31 -> 0.80, floor 0.71 -> 0.95), median
-    # 1.42 -> 1.08 mm, p95 8.5 -> 7.1 mm, points > 2 cm from the true surface 0.46 % ->
-    # 0.23 % (0.40 % of the new ones), 1.26 M -> 2.39 M points. Steps: 2 verified views
-    # and ZNCC ≥ 0.6, ±3 %, margin 0.02: 0.737; 4 views, 1 needed: 0.78; margin 0.01 and
-    # ±5 %: 0.828; walls made perpendicular: 0.836 (wall planes 1.5-8 mm and 2-4° off
-    # before); 1 agreeing neighbour for verified pixels: 0.865 (2: 0.836); extent margin
-    # 0.5 m instead of 0.25: 0.889 (1 m: 0.921 with far rows); far rows: 0.909 (every far
-    # plane pixel: 0.916 at 2.81 M points). ZNCC at half scale 7×7: 0.737 vs 0.711 at a
-    # quarter, 5-8× the time. planar_snap (far SGBM depths within far_consistency_rel_tol
-    # of an accepted plane take its depth): 0.940, median 0.83 mm, p95 4.3 mm, but that
-    # flattens anything within 3 % (13 cm at 4.5 m) onto the plane, and the generated
-    # floor and walls are exactly planar, so it flatters them: off. Reconstruct bench, same
-    # run, load 4-6: SfM + markers 0.598 -> 0.898, known poses 0.603 -> 0.909, after capture
-    # 0.525 -> 0.815; the after capture's ICP then follows near measured points only
-    # (stage.py), camera centres 0.55 mm median (0.63-0.72 without the prior).
+    # tilt to 2-4°), plane depths (≥ planar_min_depth_m) where SGBM has none or a far one,
+    # each verified by ZNCC (quarter scale, 5×5) against the 4 widest-baseline neighbours:
+    # ≥ 0.8 and a peak over depths ±5 %. Verified pixels need 1 agreeing consistency
+    # neighbour, far ones are also taken on every row. Reconstruct bench, same run, load
+    # 3-4.4, off -> on: SfM + markers 0.599 -> 0.892, known poses 0.603 -> 0.902 (by the
+    # nearest camera's distance 0.99/0.97/0.85/0.61/0.27 -> 0.99/0.98/0.99/0.96/0.74; walls
+    # 0.31 -> 0.80, floor 0.71 -> 0.94), after capture 0.525 -> 0.809; known poses median
+    # 1.42 -> 1.49 mm, p95 8.5 -> 8.05 mm, points > 2 cm from the true surface 0.46 % ->
+    # 0.28 % (0.41 % of the 0.5 M new ones); known poses 18.7-18.8 s -> 22.4-22.8 s at that
+    # load (+21 %; the planar stage 1.4 s, the rest more points: 1.26 M -> 1.86 M). The
+    # after capture's ICP follows near measured points only (stage.py): camera centres
+    # 0.59 mm median (0.62 without the prior; 1.95 mm when it followed every point).
+    # Steps on cached depth maps: 2 verified views and ZNCC ≥ 0.6, ±3 %, margin 0.02: 0.737;
+    # 4 views, 1 needed: 0.78; margin 0.01 and ±5 %: 0.828; walls made perpendicular:
+    # 0.836 (wall planes 1.5-8 mm and 2-4° off before); 1 agreeing neighbour for verified
+    # pixels: 0.865 (2: 0.836); extent margin 0.5 m instead of 0.25: 0.889 (1 m: 0.921 with
+    # far rows); far rows: 0.909 (every far plane pixel: 0.916 at 2.81 M points). ZNCC at
+    # half scale 7×7: 0.737 vs 0.711 at a quarter, 5-8× the time. planar_snap (far SGBM
+    # depths within far_consistency_rel_tol of an accepted plane take its depth): 0.940,
+    # median 0.83 mm, p95 4.3 mm, but that flattens anything within 3 % (13 cm at 4.5 m)
+    # onto the plane, and the generated floor and walls are exactly planar, so it flatters
+    # them: off.
     planar_prior: bool = True
     # no plane depth nearer than this: the work area, where objects stand (≤ 2.6 m from the
     # generated cameras) keeps SGBM depths only. 0 instead: the same completeness (0.909),

@@ -91,7 +91,8 @@ class ReconstructOptions:
     # 0.31 -> 0.80, floor 0.71 -> 0.94), after capture 0.525 -> 0.809; known poses median
     # 1.42 -> 1.49 mm, p95 8.5 -> 8.05 mm, points > 2 cm from the true surface 0.46 % ->
     # 0.28 % (0.41 % of the 0.5 M new ones); known poses 18.7-18.8 s -> 22.4-22.8 s at that
-    # load (+21 %; the planar stage 1.4 s, the rest more points: 1.26 M -> 1.86 M). The
+    # load (+21 %; the planar stage 1.4 s, the rest more points: 1.26 M -> 1.86 M); at load
+    # 1.2-1.5, alternating, 2 runs each: 11.0-11.7 s -> 13.0-13.3 s (+16 %). The
     # after capture's ICP follows near measured points only (stage.py): camera centres
     # 0.59 mm median (0.62 without the prior; 1.95 mm when it followed every point).
     # Steps on cached depth maps: 2 verified views and ZNCC ≥ 0.6, ±3 %, margin 0.02: 0.737;

@@ -66,8 +66,7 @@ class Plane:
         stops at a wall it meets (the cells along their junction and the margin go no
         further) and a wall at the floor, while a floor seen on both sides of a machine's
         face goes on."""
-        uv = (points_env - self.origin_env) @ self.axes_env.T
-        ij = np.floor((uv - self.lo_uv) / self.cell_m).astype(np.int64)
+        ij = self.cell_index(points_env)
         gu, gv = self.occupied.shape
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < gu) & (ij[:, 1] >= 0) & (ij[:, 1] < gv)
         out = np.zeros(len(points_env), np.bool_)
@@ -79,6 +78,11 @@ class Plane:
             )
             out[inside] &= self.beyond[cells] | within
         return out
+
+    def cell_index(self, points_env: FloatArray) -> NDArray[np.int64]:
+        """(N, 2) grid cell (i, j) of (N, 3) env points (assumed on the plane); may lie
+        outside the grid."""
+        return _cell_index(points_env, self.origin_env, self.axes_env, self.lo_uv, self.cell_m)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -156,6 +160,28 @@ def _orthogonalise(
     return snapped, offset, inl
 
 
+def _cell_index(
+    points_env: FloatArray, origin: FloatArray, axes: FloatArray, lo_uv: FloatArray, cell_m: float
+) -> NDArray[np.int64]:
+    """(N, 2) cell (i, j) of (N, 3) points in a plane's grid: u, v = (X − origin)·axes,
+    cell (0, 0) starting at ``lo_uv``."""
+    uv = (points_env - origin) @ axes.T
+    return np.floor((uv - lo_uv) / cell_m).astype(np.int64)
+
+
+def _margin_cells(margin_m: float, cell_m: float) -> int:
+    return int(np.ceil(margin_m / cell_m))
+
+
+def _mark_cells(ij: NDArray[np.int64], shape: tuple[int, ...], grow: int) -> NDArray[np.bool_]:
+    """(U, V) bool grid with the cells ``ij`` (N, 2) set, dilated by ``grow`` cells."""
+    grid = np.zeros(shape, np.uint8)
+    grid[ij[:, 0], ij[:, 1]] = 1
+    if grow > 0:
+        grid = np.asarray(cv2.dilate(grid, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)))
+    return grid.astype(np.bool_)
+
+
 def _extent(
     points_env: FloatArray, normal: FloatArray, offset: float, cell_m: float, margin_m: float
 ) -> tuple[FloatArray, FloatArray, FloatArray, NDArray[np.bool_]]:
@@ -167,15 +193,11 @@ def _extent(
     axis_u /= np.linalg.norm(axis_u)
     axes = np.stack([axis_u, np.cross(normal, axis_u)])
     uv = (points_env - origin) @ axes.T
-    grow = int(np.ceil(margin_m / cell_m))
+    grow = _margin_cells(margin_m, cell_m)
     lo = np.floor(uv.min(axis=0) / cell_m) * cell_m - grow * cell_m
-    ij = np.floor((uv - lo) / cell_m).astype(np.int64)
+    ij = _cell_index(points_env, origin, axes, lo, cell_m)
     shape = ij.max(axis=0) + 1 + grow
-    occ = np.zeros((int(shape[0]), int(shape[1])), np.uint8)
-    occ[ij[:, 0], ij[:, 1]] = 1
-    if grow > 0:
-        occ = np.asarray(cv2.dilate(occ, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)))
-    return origin, axes, lo, occ.astype(np.bool_)
+    return origin, axes, lo, _mark_cells(ij, (int(shape[0]), int(shape[1])), grow)
 
 
 def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[Plane]:
@@ -250,14 +272,9 @@ def _with_limits(
         rows.append([*(-sign * other.normal_env), -sign * other.offset_m])
     limits = np.asarray(rows, np.float64).reshape(-1, 4)
     out = inliers_env[np.any(inliers_env @ limits[:, :3].T > limits[:, 3] + tol_m, axis=1)]
-    uv = (out - plane.origin_env) @ plane.axes_env.T
-    ij = np.floor((uv - plane.lo_uv) / plane.cell_m).astype(np.int64)
-    beyond = np.zeros(plane.occupied.shape, np.uint8)
-    beyond[ij[:, 0], ij[:, 1]] = 1
-    grow = int(np.ceil(margin_m / plane.cell_m))
-    if grow > 0:
-        beyond = np.asarray(cv2.dilate(beyond, np.ones((2 * grow + 1, 2 * grow + 1), np.uint8)))
-    return replace(plane, beyond=beyond.astype(np.bool_), limits_env=limits)
+    grow = _margin_cells(margin_m, plane.cell_m)
+    beyond = _mark_cells(plane.cell_index(out), plane.occupied.shape, grow)
+    return replace(plane, beyond=beyond, limits_env=limits)
 
 
 def _rays_cam(k_matrix: FloatArray, width: int, height: int) -> NDArray[np.float32]:
@@ -275,6 +292,18 @@ def _linear(rays: NDArray[np.float32], coeffs: FloatArray) -> NDArray[np.float32
     """(H, W) float32 c · r of (3, H, W) rays and a (3,) vector (linear in the pixel)."""
     a, b, c = (float(v) for v in coeffs)
     return np.asarray(a * rays[0] + (b * rays[1] + np.float32(c)), np.float32)
+
+
+def _ray_depth(
+    rays: NDArray[np.float32], env_from_cam: FloatArray, plane: Plane
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(H, W) camera depth z where each ray of (3, H, W) ``rays`` (z = 1) from a camera at
+    ``env_from_cam`` (4, 4) meets ``plane`` (inf or negative: no hit in front), and the
+    denominator (Rᵀn)·r (its cosine to the normal times the ray's length)."""
+    denom = _linear(rays, env_from_cam[:3, :3].T @ plane.normal_env)
+    numer = np.float32(plane.offset_m - float(plane.normal_env @ env_from_cam[:3, 3]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.asarray(numer / denom, np.float32), denom
 
 
 def plane_depths(
@@ -301,9 +330,7 @@ def plane_depths(
     depth = np.full((h, w), np.inf, np.float32)
     label = np.full((h, w), -1, np.int16)
     for idx, p in enumerate(planes):
-        denom = _linear(rays, rot.T @ p.normal_env)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.float32(p.offset_m - float(p.normal_env @ centre)) / denom
+        z, denom = _ray_depth(rays, view.env_from_cam, p)
         ok = (z > 0) & (np.abs(denom) >= min_cos_incidence * length) & (z < depth)
         ys, xs = np.nonzero(ok)
         if len(ys) == 0:
@@ -321,15 +348,11 @@ def _label_depths(view: DenseView, planes: list[Plane], label: NDArray[np.int16]
     w, h = view.size
     depth = np.zeros((h, w), np.float32)
     rays = _rays_cam(view.k_matrix, w, h)
-    rot = view.env_from_cam[:3, :3]
-    centre = view.env_from_cam[:3, 3]
     for idx, p in enumerate(planes):
         sel = label == idx
         if not sel.any():
             continue
-        denom = _linear(rays, rot.T @ p.normal_env)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = np.float32(p.offset_m - float(p.normal_env @ centre)) / denom
+        z, _ = _ray_depth(rays, view.env_from_cam, p)
         depth[sel] = np.where(z[sel] > 0, z[sel], 0.0)
     return depth
 

@@ -38,7 +38,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -48,6 +48,7 @@ import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from workers.pipeline.compare.visibility import DepthMap, seen_empty_counts
 from workers.pipeline.errors import InputError, RegistrationError, ShapeError
 from workers.pipeline.geometry import (
     Mat4,
@@ -79,7 +80,9 @@ class PoseOptions:
 
     ``support_band_voxels``: the plane the object stands on (floor, table; found under the
     cluster) is removed from the scene up to this height (at most ``max_inlier_distance_m``),
-    and a candidate is penalised for the share of model points sunk below it; 0 disables.
+    and a candidate is penalised for the share of model points sunk below it by more than
+    that band, or lying that far in front of what a camera saw (when ``free_space`` depth
+    maps are given); 0 disables the support plane.
 
     ``colour_margin``: a symmetric object whose colours break its symmetry (a label) is
     published in the equivalent pose whose model colours correlate best with the scene's,
@@ -430,13 +433,23 @@ def _support_plane(
     return None
 
 
-def _support_factor(posed: Points, support: NDArray[np.float64] | None, band: float) -> float:
-    """1 − 3 × the share of (N, 3) posed model points more than ``band`` below the support
-    plane (an object does not sink into the floor it stands on), at least 0."""
-    if support is None:
-        return 1.0
-    below = float(np.mean(posed @ support[:3] + support[3] < -band))
-    return max(0.0, 1.0 - 3.0 * below)
+def _exclusion_factor(
+    posed: Points,
+    support: NDArray[np.float64] | None,
+    free_space: Sequence[DepthMap],
+    band: float,
+) -> float:
+    """1 − 3 × the share of (N, 3) posed model points where the object cannot be, at least
+    0: more than ``band`` below the support plane (an object does not sink into the floor
+    it stands on) or more than ``band`` in front of the surface a camera of the capture saw
+    behind them (it does not fill space the cameras saw through: a hammer turned over
+    about its handle puts its claw there)."""
+    cannot = np.zeros(len(posed), dtype=bool)
+    if support is not None:
+        cannot |= posed @ support[:3] + support[3] < -band
+    if free_space:
+        cannot[~cannot] = seen_empty_counts(posed[~cannot], free_space, band) > 0
+    return max(0.0, 1.0 - 3.0 * float(np.mean(cannot)))
 
 
 def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
@@ -563,6 +576,7 @@ def estimate_pose(
     centre_env: ArrayLike | None = None,
     previous_env_from_object: ArrayLike | None = None,
     up_env: ArrayLike = (0.0, 0.0, 1.0),
+    free_space: Sequence[DepthMap] = (),
     options: PoseOptions = POSE_PRESETS["default"],
 ) -> PoseResult:
     """Register ``model`` into ``scene`` near a changed cluster; return ``env_from_object``.
@@ -572,8 +586,10 @@ def estimate_pose(
     ``crop_factor × diameter`` (grown to cover the cluster plus a quarter diameter, at most
     one diameter). ``previous_env_from_object``: a known earlier pose (object moved), tried
     as an extra ICP start and used to choose among symmetric poses. ``up_env``: the
-    environment's up direction. Raises RegistrationError when the crop is too sparse or no
-    candidate explains any of it.
+    environment's up direction. ``free_space``: z-buffers of the capture the scene came
+    from, one per camera (:func:`~workers.pipeline.compare.stage.render_depth_maps`); a
+    candidate is penalised for model points where a camera saw through. Raises
+    RegistrationError when the crop is too sparse or no candidate explains any of it.
     """
     t_start = time.perf_counter()
     timings: dict[str, float] = {}
@@ -685,10 +701,11 @@ def estimate_pose(
         t = _rounded_rigid(t, 9)
         pts = transform_points(t, model.down_points)
         ev = REG.evaluate_registration(model_down, scene_fine, tau, t)
+        excluded = _exclusion_factor(pts, support, free_space, band)
         trials.append(
             Trial(
                 source,
-                _truncated_score(tree, pts, tau) * _support_factor(pts, support, band),
+                _truncated_score(tree, pts, tau) * excluded,
                 float(ev.fitness),
                 float(ev.inlier_rmse),
                 time.perf_counter() - t_begin,
@@ -773,8 +790,8 @@ def estimate_pose(
                     mid_points, mid_normals, target_fine, pose, scale * v, o.icp_max_iterations
                 )
             posed_mid = transform_points(pose, mid_points)
-            score = _truncated_score(tree, posed_mid, tau_fine) * _support_factor(
-                posed_mid, support, band
+            score = _truncated_score(tree, posed_mid, tau_fine) * _exclusion_factor(
+                posed_mid, support, free_space, band
             )
             refined.append((score, pose, t))
         refined.sort(key=lambda r: -r[0])

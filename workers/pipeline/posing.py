@@ -75,6 +75,7 @@ def pose_change(
             scene,
             cluster_points_env=change.cluster.points_env,
             previous_env_from_object=change.previous_env_from_object,
+            free_space=depth_maps or (),
             options=replace(options, **{k: v for k, v in pose_options.items() if k != "preset"}),
         )
     except PipelineError as exc:

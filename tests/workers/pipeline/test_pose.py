@@ -17,7 +17,10 @@ import numpy as np
 import open3d as o3d
 import pytest
 
+from tests.workers.pipeline.test_compare_scene import look_at
 from workers.pipeline.__main__ import main as pipeline_main
+from workers.pipeline.compare import Camera
+from workers.pipeline.compare.visibility import render_depth
 from workers.pipeline.errors import InputError, RegistrationError, ShapeError
 from workers.pipeline.geometry import invert_rigid, make_rigid, pose_error, transform_points
 from workers.pipeline.model import ModelOptions, PreparedModel, load_surface, prepare_model
@@ -26,6 +29,7 @@ from workers.pipeline.pose import (
     PoseOptions,
     SceneCloud,
     _cluster_coverage,
+    _exclusion_factor,
     estimate_pose,
     random_rigid,
     symmetric_pose_error,
@@ -115,6 +119,29 @@ def test_invert_rigid_round_trip_and_symmetric_error_properties() -> None:
 
 
 # ---------------------------------------------------------------- oracle: known poses
+
+
+def test_exclusion_counts_points_below_the_support_or_where_a_camera_saw_through() -> None:
+    # a camera looking down at a floor (z = 0) it saw from 1 m to 2 m away
+    k = np.array([[400.0, 0, 320], [0, 400, 240], [0, 0, 1]])
+    cam = Camera("c", k, 640, 480, look_at((1.5, 0.0, 1.5), (0.0, 0.0, 0.0)))
+    g = np.linspace(-0.6, 0.6, 241)
+    floor = np.column_stack([np.repeat(g, len(g)), np.tile(g, len(g)), np.zeros(len(g) ** 2)])
+    free_space = [render_depth(cam, floor.astype(np.float32))]
+    support = np.array([0.0, 0.0, 1.0, 0.0])
+    band = 0.004
+    on = np.column_stack([np.linspace(-0.2, 0.2, 60), np.zeros(60), np.full(60, 0.002)])
+    in_air = on + np.array([0.0, 0.0, 0.05])  # the camera saw the floor behind these: 5 cm in front
+    sunk = on - np.array([0.0, 0.0, 0.05])  # below the support
+    posed = np.concatenate([on, on, on, on, in_air, sunk])  # 4 : 1 : 1
+    assert _exclusion_factor(on, support, free_space, band) == 1.0
+    assert _exclusion_factor(in_air, None, free_space, band) == 0.0
+    assert _exclusion_factor(in_air, support, (), band) == 1.0  # no depth maps: no evidence
+    assert _exclusion_factor(posed, support, free_space, band) == pytest.approx(1 - 3 * 2 / 6)
+    assert _exclusion_factor(posed, support, (), band) == pytest.approx(1 - 3 * 1 / 6)
+    # out of the camera's view nothing was seen: no evidence either
+    far_off = in_air + np.array([0.0, 5.0, 0.0])
+    assert _exclusion_factor(far_off, None, free_space, band) == 1.0
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -82,7 +82,9 @@ class PoseOptions:
     cluster) is removed from the scene up to this height (at most ``max_inlier_distance_m``),
     and a candidate is penalised for the share of model points sunk below it by more than
     that band, or lying that far in front of what a camera saw (when ``free_space`` depth
-    maps are given); 0 disables the support plane.
+    maps are given); 0 disables the support plane. ``max_sink_m``: a final pose whose lowest
+    model point lies below that plane by at most this much is lifted onto it (an object
+    does not sink into what it stands on); 0 disables.
 
     ``colour_margin``: a symmetric object whose colours break its symmetry (a label) is
     published in the equivalent pose whose model colours correlate best with the scene's,
@@ -129,6 +131,7 @@ class PoseOptions:
     min_cluster_coverage: float = 0.85
     colour_margin: float = 0.1
     support_band_voxels: float = 0.5
+    max_sink_m: float = 0.01
     max_runner_up_ratio: float = 0.85
     seed: int = 0
 
@@ -452,6 +455,34 @@ def _exclusion_factor(
     return max(0.0, 1.0 - 3.0 * float(np.mean(cannot)))
 
 
+def _out_of_support(
+    env_from_object: Mat4,
+    model_points: Points,
+    support: NDArray[np.float64] | None,
+    on_support: Points,
+    max_sink_m: float,
+    clearance_m: float,
+) -> Mat4:
+    """The pose moved along the support plane's normal until its lowest (N, 3) model point
+    (object frame) touches the plane, when it has sunk into it by at most ``max_sink_m``
+    (metres; deeper, or above the plane: unchanged) and the plane reaches beyond the object:
+    at least 30 of the (M, 3) scene points ``on_support`` lie more than ``clearance_m`` from
+    the posed model (an object's own flat face is no floor). ICP onto a reconstruction,
+    whose stereo rounds an object's top edges down, left every bench pose 1-8 mm sunk."""
+    if support is None or max_sink_m <= 0 or len(on_support) < 30:
+        return env_from_object
+    posed = transform_points(env_from_object, model_points)
+    lowest = float(np.min(posed @ support[:3])) + float(support[3])
+    if not -max_sink_m <= lowest < 0.0:
+        return env_from_object
+    d, _ = cKDTree(posed).query(on_support, distance_upper_bound=clearance_m)
+    if int(np.count_nonzero(~np.isfinite(d))) < 30:
+        return env_from_object
+    out = env_from_object.copy()
+    out[:3, 3] -= lowest * support[:3]
+    return out
+
+
 def _truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     d, _ = tree.query(points, distance_upper_bound=tau)
     d = np.where(np.isfinite(d), d, tau)
@@ -649,7 +680,9 @@ def estimate_pose(
         if o.support_band_voxels > 0
         else None
     )
+    on_support = np.zeros((0, 3))
     if support is not None:
+        on_support = f_pts[np.abs(f_pts @ support[:3] + support[3]) < band / 2]
         # the floor or table the object stands on is not the object: a flat object laid
         # into it upside down fits it better than the object itself
         above = np.flatnonzero(f_pts @ support[:3] + support[3] > band)
@@ -810,6 +843,9 @@ def estimate_pose(
             env_from_object,
             o.icp_scales_voxels[-1] * v,
             o.icp_max_iterations,
+        )
+        env_from_object = _out_of_support(
+            env_from_object, model.points, support, on_support, o.max_sink_m, 2 * v
         )
         runner_up = next(
             (

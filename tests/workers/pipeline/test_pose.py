@@ -30,6 +30,7 @@ from workers.pipeline.pose import (
     SceneCloud,
     _cluster_coverage,
     _exclusion_factor,
+    _out_of_support,
     estimate_pose,
     random_rigid,
     symmetric_pose_error,
@@ -142,6 +143,30 @@ def test_exclusion_counts_points_below_the_support_or_where_a_camera_saw_through
     # out of the camera's view nothing was seen: no evidence either
     far_off = in_air + np.array([0.0, 5.0, 0.0])
     assert _exclusion_factor(far_off, None, free_space, band) == 1.0
+
+
+def test_a_pose_sunk_into_its_support_is_lifted_onto_it() -> None:
+    rng = np.random.default_rng(0)
+    box = rng.uniform([-0.05, -0.03, 0.0], [0.05, 0.03, 0.04], (500, 3))  # object frame
+    box[0, 2] = 0.0  # its lowest point
+    floor = np.array([0.0, 0.0, 1.0, -0.1])  # the plane z = 0.1 m, normal up
+    g = np.linspace(-0.2, 0.2, 41)
+    around = np.column_stack([np.repeat(g, 41) + 0.3, np.tile(g, 41) - 0.2, np.full(41**2, 0.1)])
+    tilt = axis_angle_matrix(np.array([1.0, 1.0, 0.0]), np.radians(3.0))
+    for sunk, lifted in ((0.004, True), (0.0095, True), (0.02, False), (-0.002, False)):
+        pose = make_rigid(tilt, [0.3, -0.2, 0.0])
+        pose[:3, 3] += [0, 0, 0.1 - transform_points(pose, box)[:, 2].min() - sunk]
+        out = _out_of_support(pose, box, floor, around, 0.01, 0.01)
+        np.testing.assert_allclose(out[:3, :3], pose[:3, :3])  # only moved, along the normal
+        np.testing.assert_allclose(out[:2, 3], pose[:2, 3])
+        lowest = transform_points(out, box)[:, 2].min()
+        assert lowest == pytest.approx(0.1 if lifted else 0.1 - sunk, abs=1e-12)
+        # a plane with no point away from the object is its own face, not a floor
+        underneath = around[np.abs(around[:, 0] - 0.3) < 0.04]
+        underneath = underneath[np.abs(underneath[:, 1] + 0.2) < 0.02]
+        assert _out_of_support(pose, box, floor, underneath, 0.01, 0.01) is pose
+    assert _out_of_support(pose, box, None, around, 0.01, 0.01) is pose
+    assert _out_of_support(pose, box, floor, around, 0.0, 0.01) is pose
 
 
 @pytest.mark.parametrize("seed", [1, 2])

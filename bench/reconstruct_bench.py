@@ -162,6 +162,7 @@ def cloud_metrics(
         "distance_p90_m": float(np.percentile(dist, 90)),
         "distance_p95_m": float(np.percentile(dist, 95)),
         "distance_mean_m": float(np.mean(dist)),
+        "share_over_2cm": float(np.mean(dist > 0.02)),
         "completeness_1cm": float(np.mean(nn < 0.01)),
         "completeness_5mm": float(np.mean(nn < 0.005)),
         "reachable_share_of_visible": float(reach.mean()),

@@ -15,6 +15,7 @@ from workers.pipeline.reconstruct.mvs import (
     _far_partners,
     _overlay_far,
     consistent_points,
+    consistent_points_split,
     disparity_window,
     far_disparity_window,
     pair_depths,
@@ -91,6 +92,40 @@ def test_far_pixels_use_the_far_consistency_tolerance() -> None:
     ):
         with pytest.raises(DenseReconstructionFailed):
             consistent_points(views, depths, nbrs, opts)
+
+
+def test_a_refuted_far_depth_falls_back_to_its_verified_one_checked_by_its_views() -> None:
+    """View 0 holds a far depth 2 % too deep (within the 3 % far tolerance of the true floor,
+    as a far SGBM depth that agreed with a verified plane depth), the true depth as its
+    fallback, one consistency neighbour that sees nothing, and view 2 (its depth also 2 %
+    too deep) as the view its plane depths were checked against. The measured depth has no
+    support and is dropped; the fallback depth is kept on view 2's agreement, flagged as
+    verified, at its own depth (not averaged with view 2's: median |z| < 0.1 mm, not 1 %).
+    Without the checking views, or without the fallback, nothing survives."""
+    views = _views(8)
+    truth = [_true_depth(v) for v in views]
+    depths = [(t * 1.02).astype(np.float32) for t in truth]
+    depths[1] = np.zeros_like(depths[1])
+    n = len(views)
+    nbrs = Neighbours(
+        stereo=tuple(() for _ in range(n)), consistency=((1,), *(() for _ in range(n - 1)))
+    )
+    opts = ReconstructOptions(
+        point_stride=1, far_min_depth_m=0.5, far_consistency_rel_tol=0.03, planar_far_row_stride=1
+    )
+    verified = [np.zeros(d.shape, np.bool_) for d in depths]
+    fallback = [truth[0], *(np.zeros_like(d) for d in depths[1:])]
+    checked_by = [(2,), *(() for _ in range(n - 1))]
+    pts, _, src, own = consistent_points_split(
+        views, depths, nbrs, opts, verified=verified, checked_by=checked_by, fallback=fallback
+    )
+    seen_by_2 = int((truth[0] > 0).sum())
+    assert 0.3 * seen_by_2 < len(pts) <= seen_by_2
+    assert src.all() and np.median(np.abs(pts[:, 2])) < 1e-4
+    assert np.isin(own, truth[0][truth[0] > 0]).all()  # the fallback depths, not 2 % deeper
+    for kwargs in ({"fallback": fallback}, {"checked_by": checked_by}):
+        with pytest.raises(DenseReconstructionFailed):
+            consistent_points_split(views, depths, nbrs, opts, verified=verified, **kwargs)
 
 
 def test_sgbm_pair_depths_are_millimetre_accurate_on_a_plane() -> None:

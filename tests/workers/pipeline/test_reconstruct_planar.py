@@ -15,10 +15,10 @@ from workers.pipeline.errors import ShapeError
 from workers.pipeline.reconstruct.mvs import DenseView, Neighbours, consistent_points_split
 from workers.pipeline.reconstruct.options import ReconstructOptions
 from workers.pipeline.reconstruct.planar import (
+    coverage_views,
     detect_planes,
     fill_depths,
     plane_depths,
-    verification_views,
 )
 
 W, H = 640, 480
@@ -124,7 +124,7 @@ def test_detect_planes_finds_floor_and_wall_with_their_extents() -> None:
     and 300 clutter points: the floor (normal ±z, offset < 2 mm) first, then the wall
     (normal ±x, |offset| 2.5 m ± 2 mm, made exactly perpendicular to the floor); the floor's
     extent covers its points and stops within a cell plus the margin past them."""
-    opts = ReconstructOptions(planar_min_points=200)
+    opts = ReconstructOptions(planar_min_points=200, planar_margin_m=0.5)
     planes = detect_planes(_floor_and_wall_points(np.random.default_rng(0)), opts)
     assert len(planes) == 2
     floor, wall = planes
@@ -204,7 +204,8 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     known = (7, 0, 1)
     for i in known:
         start[i] = np.where(index[i] >= 1, depths[i], 0.0).astype(np.float32)
-    filled, from_plane, stats = fill_depths(views, start, _ring_neighbours(n), planes, OPTS)
+    fill = fill_depths(views, start, planes, OPTS)
+    filled, from_plane, stats = fill.depths, fill.from_plane, fill.stats
     floor_px = box_px = floor_ok = box_bad = 0
     for i in range(n):
         floor = index[i] == 0
@@ -224,7 +225,13 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     assert all(np.array_equal(m, f != s) for m, (f, s) in zip(from_plane, pairs, strict=True))
     opts = replace(OPTS, point_stride=1)
     pts, _, src, depth_m = consistent_points_split(
-        views, filled, _ring_neighbours(n), opts, verified=from_plane
+        views,
+        filled,
+        _ring_neighbours(n),
+        opts,
+        verified=from_plane,
+        checked_by=fill.checked_by,
+        fallback=fill.fallback,
     )
     # distance to the floor or to the cube (|x|, |y| ≤ 0.2, 0 ≤ z ≤ 0.4)
     q = np.abs(pts - [0.0, 0.0, 0.2]) - 0.2
@@ -244,7 +251,7 @@ def test_no_plane_depth_nearer_than_planar_min_depth(scene: tuple) -> None:
     planes = detect_planes(np.c_[rng.uniform(-1.4, 1.4, (4000, 2)), np.zeros(4000)], OPTS)
     start = [np.zeros_like(d) for d in depths]
     opts = replace(OPTS, planar_min_depth_m=1.6)
-    filled, _, _ = fill_depths(views, start, _ring_neighbours(len(views)), planes, opts)
+    filled = fill_depths(views, start, planes, opts).depths
     got = np.concatenate([f[f > 0] for f in filled])
     assert len(got) > 10_000 and got.min() >= 1.6
 
@@ -253,20 +260,74 @@ def test_fill_depths_rejects_mismatched_inputs_and_passes_through_without_planes
     scene: tuple,
 ) -> None:
     views, depths, _ = scene
-    nbrs = _ring_neighbours(len(views))
     with pytest.raises(ShapeError):
-        fill_depths(views, depths[:-1], nbrs, [], OPTS)
+        fill_depths(views, depths[:-1], [], OPTS)
     with pytest.raises(ShapeError):
-        fill_depths(views, [d[:-1] for d in depths], nbrs, [], OPTS)
-    out, _, stats = fill_depths(views, depths, nbrs, [], OPTS)
-    assert stats["pixels_filled"] == 0
-    assert all(np.array_equal(a, b) for a, b in zip(out, depths, strict=True))
+        fill_depths(views, [d[:-1] for d in depths], [], OPTS)
+    fill = fill_depths(views, depths, [], OPTS)
+    assert fill.stats["pixels_filled"] == 0
+    assert all(np.array_equal(a, b) for a, b in zip(fill.depths, depths, strict=True))
+    assert not any(m.any() for m in fill.from_plane) and not any(f.any() for f in fill.fallback)
 
 
-def test_verification_views_prefer_wide_baselines() -> None:
+def test_coverage_views_pick_the_views_that_see_the_points() -> None:
+    """Eight views on a ring, all looking at the floor patch at its centre, and a ninth 1 cm
+    beside view 0. Nothing occluded: two views (every point is then seen by two chosen
+    views), never view 0 itself. Views whose depth maps hold something nearer in front of
+    the points (an occluder 0.3 m away) do not count: with only 3 and 5 free, those two;
+    with only the ninth free, none (its angle to view 0 is below 1°); no points, no views."""
     poses = ring_poses(8, radius=1.2, height=1.0)
+    beside = poses[0].copy()
+    beside[:3, 3] += beside[:3, 0] * 0.01
+    poses = [*poses, beside]
     img = np.zeros((H, W, 3), np.uint8)
     views = [DenseView(f"v{i}", img, k_matrix(), p) for i, p in enumerate(poses)]
-    check = verification_views(views, _ring_neighbours(8), 2)
-    # candidates of view 0: 1, 7 (stereo, consistency), 2, 6 (far, either direction)
-    assert set(check[0]) == {2, 6}
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-0.1, 0.1, (200, 2)), np.zeros(200)]
+    ks = [k_matrix() for _ in views]
+    empty = np.zeros((H, W), np.float32)
+    wall = np.full((H, W), 0.3, np.float32)
+
+    def free(*keep: int) -> list[NDArray[np.float32]]:
+        return [empty if j in keep else wall for j in range(len(views))]
+
+    chosen = coverage_views(0, views, pts, free(*range(9)), ks, 4, 5)
+    assert len(chosen) == 2 and 0 not in chosen
+    assert set(coverage_views(0, views, pts, free(0, 3, 5), ks, 4, 5)) == {3, 5}
+    assert coverage_views(0, views, pts, free(0, 8), ks, 4, 5) == ()
+    assert coverage_views(0, views, pts[:0], free(*range(9)), ks, 4, 5) == ()
+    with pytest.raises(ShapeError):
+        coverage_views(0, views, pts[:, :2], free(*range(9)), ks, 4, 5)
+
+
+def test_walls_off_a_rectangular_layout_by_a_small_angle_are_turned_onto_it() -> None:
+    """A floor and three walls of a 6 m room (x = ±3, y = 3); the x = +3 wall is seen only
+    in a 1.5 m band near its corner, its points tilted by 0.6° about the vertical (as a
+    corner's far SGBM points were on the bench): the fitted wall is turned onto the
+    others' layout (normal ±x within 1e-3 rad) and its offset stays within 3 mm of the band's
+    median; with planar_manhattan_deg = 0 it keeps its tilt."""
+    rng = np.random.default_rng(3)
+    floor = np.c_[rng.uniform(-3, 3, (8000, 2)), rng.normal(0, 0.002, 8000)]
+    y_band = rng.uniform(-3.0, -1.5, 1500)
+    tilt = np.radians(0.6)
+    wall_x = np.c_[3.0 + (y_band + 2.25) * np.tan(tilt), y_band, rng.uniform(0, 0.5, 1500)]
+    wall_x[:, 0] += rng.normal(0, 0.002, 1500)
+    wall_mx = np.c_[
+        rng.normal(-3.0, 0.002, 3000), rng.uniform(-3, 3, 3000), rng.uniform(0, 0.6, 3000)
+    ]
+    wall_y = np.c_[
+        rng.uniform(-3, 3, 3000), rng.normal(3.0, 0.002, 3000), rng.uniform(0, 0.6, 3000)
+    ]
+    pts = np.concatenate([floor, wall_mx, wall_y, wall_x])
+    opts = ReconstructOptions(planar_min_points=200, planar_voxel_m=0.02)
+    for manhattan, straight in ((2.0, True), (0.0, False)):
+        planes = detect_planes(pts, replace(opts, planar_manhattan_deg=manhattan))
+        wall = [
+            p for p in planes if abs(p.normal_env[0]) > 0.99 and p.offset_m * p.normal_env[0] > 2
+        ]
+        assert len(wall) == 1
+        sideways = abs(float(wall[0].normal_env[1]))
+        assert (sideways < 1e-3) == straight, sideways
+        if straight:
+            x = wall[0].offset_m * np.sign(wall[0].normal_env[0])
+            assert abs(x - float(np.median(wall_x[:, 0]))) < 0.003

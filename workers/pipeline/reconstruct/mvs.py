@@ -560,6 +560,32 @@ def consistent_points(
     return out[0], out[1]
 
 
+def _agreement(
+    views: list[DenseView],
+    depths: list[NDArray[np.float32]],
+    points_env: FloatArray,
+    rel_tol: NDArray[np.float32],
+    others: tuple[int, ...],
+) -> tuple[NDArray[np.int32], FloatArray]:
+    """For (N, 3) env points: how many views of ``others`` have a depth that agrees with the
+    point's depth in them within (N,) ``rel_tol`` (relative), and the sum (N, 3) of the
+    point and those views' own measurements on the same ray."""
+    pts32 = points_env.astype(np.float32)
+    support = np.zeros(len(points_env), np.int32)
+    acc = points_env.copy()
+    for j in others:
+        z, d = _sample_depth(views[j], depths[j], pts32)
+        ok = (d > 0) & (np.abs(d - z) <= rel_tol * z)
+        if not ok.any():
+            continue
+        support += ok
+        # the neighbour's own measurement on the same ray of view j: c + (p - c) d / z
+        centre = views[j].env_from_cam[:3, 3]
+        scale = (d[ok] / z[ok]).astype(np.float64)
+        acc[ok] += centre + (points_env[ok] - centre) * scale[:, None]
+    return support, acc
+
+
 def consistent_points_split(
     views: list[DenseView],
     depths: list[NDArray[np.float32]],
@@ -567,6 +593,8 @@ def consistent_points_split(
     options: ReconstructOptions,
     progress: Progress = no_progress,
     verified: list[NDArray[np.bool_]] | None = None,
+    checked_by: list[tuple[int, ...]] | None = None,
+    fallback: list[NDArray[np.float32]] | None = None,
 ) -> tuple[FloatArray, NDArray[np.uint8], NDArray[np.bool_], NDArray[np.float32]]:
     """Fused points that pass the geometric consistency check, and their RGB colours.
 
@@ -577,14 +605,26 @@ def consistent_points_split(
     Pixels set in ``verified`` (per view (H, W) bool: depths already verified
     photometrically, e.g. plane depths) need ≥ ``planar_consistency_min_views`` instead,
     and those at ≥ ``far_min_depth_m`` are taken from every ``planar_far_row_stride``-th
-    row (not only every ``point_stride``-th).
+    row (not only every ``point_stride``-th). For them the views of ``checked_by`` (per view:
+    those its verified depths were checked against) count as well, without entering the
+    mean (their far SGBM depths agree within 3 % and would pull an exact plane depth by as
+    much). ``fallback`` (per view (H, W) float32 metres, 0 = none; needs ``verified``): a
+    verified depth for pixels that kept a measured one; where that fails the check, the
+    pixel is tried again at its fallback depth as a verified pixel (a far SGBM depth that
+    no neighbour confirms counts as none, where a verified plane depth would have filled in).
     Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB, (M,) bool: from a ``verified``
-    pixel, (M,) float32: the depth in metres the point had in its own view).
+    pixel or a fallback depth, (M,) float32: the depth in metres the point had in its own view).
     """
     if len(views) != len(depths):
         raise ShapeError(f"{len(views)} views but {len(depths)} depth maps")
     if verified is not None and [m.shape for m in verified] != [d.shape for d in depths]:
         raise ShapeError("verified masks must match the depth maps one to one")
+    if fallback is not None and (
+        verified is None or [m.shape for m in fallback] != [d.shape for d in depths]
+    ):
+        raise ShapeError("fallback depths need verified masks and must match the depth maps")
+    if checked_by is not None and len(checked_by) != len(views):
+        raise ShapeError(f"{len(views)} views but checked_by for {len(checked_by)}")
     all_pts: list[FloatArray] = []
     all_cols: list[NDArray[np.uint8]] = []
     all_src: list[NDArray[np.bool_]] = []
@@ -605,35 +645,50 @@ def consistent_points_split(
             pts, pix = np.concatenate([pts, more_pts]), np.concatenate([pix, more_pix])
         if len(pts) == 0:
             continue
-        pts32 = pts.astype(np.float32)
-        support = np.zeros(len(pts), np.int32)
-        acc = pts.copy()
+        own_depth = depths[i][pix[:, 1], pix[:, 0]]
         rel_tol = np.full(len(pts), tol, np.float32)
         if options.far_range:
-            far = depths[i][pix[:, 1], pix[:, 0]] >= options.far_min_depth_m
-            rel_tol[far] = options.far_consistency_rel_tol
-        for j in neighbours.consistency[i]:
-            z, d = _sample_depth(views[j], depths[j], pts32)
-            ok = (d > 0) & (np.abs(d - z) <= rel_tol * z)
-            if not ok.any():
-                continue
-            support += ok
-            # the neighbour's own measurement on the same ray of view j: c + (p - c) d / z
-            centre = views[j].env_from_cam[:3, 3]
-            scale = (d[ok] / z[ok]).astype(np.float64)
-            acc[ok] += centre + (pts[ok] - centre) * scale[:, None]
+            rel_tol[own_depth >= options.far_min_depth_m] = options.far_consistency_rel_tol
+        support, acc = _agreement(views, depths, pts, rel_tol, neighbours.consistency[i])
         need = np.full(len(pts), options.consistency_min_views, np.int32)
         src = np.zeros(len(pts), np.bool_)
+        checked = np.zeros(len(pts), np.int32)  # agreeing views not in the mean
         if verified is not None:
             src = verified[i][pix[:, 1], pix[:, 0]]
             need[src] = options.planar_consistency_min_views
-        keep = support >= need
+            checked = _checked_support(
+                views, depths, pts, rel_tol, src & (support < need), i, neighbours, checked_by
+            )
+        keep = support + checked >= need
         if keep.any():
             all_pts.append(acc[keep] / (1.0 + support[keep, None]))
             all_src.append(src[keep])
-            all_depth.append(depths[i][pix[keep, 1], pix[keep, 0]])
+            all_depth.append(own_depth[keep])
             bgr = view.image[pix[keep, 1], pix[keep, 0]]
             all_cols.append(np.ascontiguousarray(bgr[:, ::-1]))
+        if fallback is not None:
+            alt = fallback[i][pix[:, 1], pix[:, 0]]
+            retry = ~keep & (alt > 0) & (own_depth > 0)
+            if retry.any():
+                centre = view.env_from_cam[:3, 3]
+                p_alt = centre + (pts[retry] - centre) * (alt[retry] / own_depth[retry])[:, None]
+                tol_alt = np.where(
+                    alt[retry] >= options.far_min_depth_m, options.far_consistency_rel_tol, tol
+                ).astype(np.float32)
+                sup_alt, acc_alt = _agreement(
+                    views, depths, p_alt, tol_alt, neighbours.consistency[i]
+                )
+                lack = sup_alt < options.planar_consistency_min_views
+                checked_alt = _checked_support(
+                    views, depths, p_alt, tol_alt, lack, i, neighbours, checked_by
+                )
+                ok = sup_alt + checked_alt >= options.planar_consistency_min_views
+                if ok.any():
+                    all_pts.append(acc_alt[ok] / (1.0 + sup_alt[ok, None]))
+                    all_src.append(np.ones(int(ok.sum()), np.bool_))
+                    all_depth.append(alt[retry][ok])
+                    px = pix[retry][ok]
+                    all_cols.append(np.ascontiguousarray(view.image[px[:, 1], px[:, 0]][:, ::-1]))
         progress("consistency", (i + 1) / len(views))
     if not all_pts:
         raise DenseReconstructionFailed(
@@ -646,3 +701,26 @@ def consistent_points_split(
         np.concatenate(all_src),
         np.concatenate(all_depth),
     )
+
+
+def _checked_support(
+    views: list[DenseView],
+    depths: list[NDArray[np.float32]],
+    points_env: FloatArray,
+    rel_tol: NDArray[np.float32],
+    lacking: NDArray[np.bool_],
+    i: int,
+    neighbours: Neighbours,
+    checked_by: list[tuple[int, ...]] | None,
+) -> NDArray[np.int32]:
+    """(N,) agreeing views among ``checked_by[i]`` (those not already consistency neighbours
+    of view ``i``) for the (N, 3) points flagged in ``lacking``; 0 for the others."""
+    out = np.zeros(len(points_env), np.int32)
+    if checked_by is None or not lacking.any():
+        return out
+    extra = tuple(j for j in checked_by[i] if j != i and j not in neighbours.consistency[i])
+    if not extra:
+        return out
+    idx = np.flatnonzero(lacking)
+    out[idx], _ = _agreement(views, depths, points_env[idx], rel_tol[idx], extra)
+    return out

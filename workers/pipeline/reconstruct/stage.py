@@ -214,11 +214,19 @@ def reconstruct(
                 "angle); take photos from more positions around the scene"
             )
         depths = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
-        verified = None
+        fill = None
         if options.planar_prior:
-            depths, verified = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
+            fill = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
+            depths = fill.depths
         raw_pts, raw_cols, from_plane, raw_depth = mvs.consistent_points_split(
-            dense_views, depths, nbrs, options, clock, verified
+            dense_views,
+            depths,
+            nbrs,
+            options,
+            clock,
+            fill.from_plane if fill else None,
+            fill.checked_by if fill else None,
+            fill.fallback if fill else None,
         )
         quality["points_before_fusion"] = len(raw_pts)
         clock("fusion", 0.0)
@@ -268,19 +276,18 @@ def _planar_prior(
     options: ReconstructOptions,
     clock: _Clock,
     quality: dict[str, Any],
-) -> tuple[list[NDArray[np.float32]], list[NDArray[np.bool_]]]:
-    """Depth maps with verified plane depths laid in (planar.py) and the masks of those
-    pixels, planes detected in a first consistency pass over every
-    ``planar_seed_stride``-th pixel; records ``quality["planar"]`` (planes, pixels filled,
-    far depths replaced or snapped)."""
+) -> planar.PlaneFill:
+    """Depth maps with verified plane depths laid in (planar.py), planes detected in a first
+    consistency pass over every ``planar_seed_stride``-th pixel; records
+    ``quality["planar"]`` (planes, pixels filled, far depths replaced or snapped)."""
     clock("planar", 0.0)
     seed_pts, _ = mvs.consistent_points(
         views, depths, nbrs, dataclasses.replace(options, point_stride=options.planar_seed_stride)
     )
     found = planar.detect_planes(seed_pts, options)
-    filled, from_plane, stats = planar.fill_depths(views, depths, nbrs, found, options, clock)
-    quality["planar"] = stats
-    return filled, from_plane
+    fill = planar.fill_depths(views, depths, found, options, clock)
+    quality["planar"] = fill.stats
+    return fill
 
 
 def _json_default(obj: object) -> object:

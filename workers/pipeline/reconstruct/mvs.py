@@ -630,6 +630,44 @@ def consistent_points_split(
     all_src: list[NDArray[np.bool_]] = []
     all_depth: list[NDArray[np.float32]] = []
     tol = options.consistency_rel_tol
+
+    def check(
+        i: int,
+        points: FloatArray,
+        depth_m: NDArray[np.float32],
+        verified_px: NDArray[np.bool_],
+        far: bool,
+    ) -> tuple[NDArray[np.bool_], FloatArray]:
+        """Which of view i's (N, 3) points at own depths ``depth_m`` pass, and the kept ones
+        averaged with the agreeing neighbours' measurements; ``far``: the looser tolerance
+        from ``far_min_depth_m`` on."""
+        rel_tol = np.full(len(points), tol, np.float32)
+        if far:
+            rel_tol[depth_m >= options.far_min_depth_m] = options.far_consistency_rel_tol
+        support, acc = _agreement(views, depths, points, rel_tol, neighbours.consistency[i])
+        need = np.where(
+            verified_px, options.planar_consistency_min_views, options.consistency_min_views
+        ).astype(np.int32)
+        lacking = verified_px & (support < need)
+        checked = _checked_support(
+            views, depths, points, rel_tol, lacking, i, neighbours, checked_by
+        )
+        keep = support + checked >= need  # checked: agreeing views not in the mean
+        return keep, acc[keep] / (1.0 + support[keep, None])
+
+    def take(
+        view: DenseView,
+        points: FloatArray,
+        src: NDArray[np.bool_],
+        depth_m: NDArray[np.float32],
+        px: NDArray[np.int64],
+    ) -> None:
+        if len(points):
+            all_pts.append(points)
+            all_src.append(src)
+            all_depth.append(depth_m)
+            all_cols.append(np.ascontiguousarray(view.image[px[:, 1], px[:, 0]][:, ::-1]))
+
     for i, view in enumerate(views):
         pts, pix = backproject(view, depths[i], options.point_stride)
         rows = options.planar_far_row_stride
@@ -646,49 +684,20 @@ def consistent_points_split(
         if len(pts) == 0:
             continue
         own_depth = depths[i][pix[:, 1], pix[:, 0]]
-        rel_tol = np.full(len(pts), tol, np.float32)
-        if options.far_range:
-            rel_tol[own_depth >= options.far_min_depth_m] = options.far_consistency_rel_tol
-        support, acc = _agreement(views, depths, pts, rel_tol, neighbours.consistency[i])
-        need = np.full(len(pts), options.consistency_min_views, np.int32)
         src = np.zeros(len(pts), np.bool_)
-        checked = np.zeros(len(pts), np.int32)  # agreeing views not in the mean
         if verified is not None:
             src = verified[i][pix[:, 1], pix[:, 0]]
-            need[src] = options.planar_consistency_min_views
-            checked = _checked_support(
-                views, depths, pts, rel_tol, src & (support < need), i, neighbours, checked_by
-            )
-        keep = support + checked >= need
-        if keep.any():
-            all_pts.append(acc[keep] / (1.0 + support[keep, None]))
-            all_src.append(src[keep])
-            all_depth.append(own_depth[keep])
-            bgr = view.image[pix[keep, 1], pix[keep, 0]]
-            all_cols.append(np.ascontiguousarray(bgr[:, ::-1]))
+        keep, fused = check(i, pts, own_depth, src, options.far_range)
+        take(view, fused, src[keep], own_depth[keep], pix[keep])
         if fallback is not None:
             alt = fallback[i][pix[:, 1], pix[:, 0]]
             retry = ~keep & (alt > 0) & (own_depth > 0)
             if retry.any():
+                # the retried pixel's ray at its fallback depth, as a verified pixel
                 centre = view.env_from_cam[:3, 3]
                 p_alt = centre + (pts[retry] - centre) * (alt[retry] / own_depth[retry])[:, None]
-                tol_alt = np.where(
-                    alt[retry] >= options.far_min_depth_m, options.far_consistency_rel_tol, tol
-                ).astype(np.float32)
-                sup_alt, acc_alt = _agreement(
-                    views, depths, p_alt, tol_alt, neighbours.consistency[i]
-                )
-                lack = sup_alt < options.planar_consistency_min_views
-                checked_alt = _checked_support(
-                    views, depths, p_alt, tol_alt, lack, i, neighbours, checked_by
-                )
-                ok = sup_alt + checked_alt >= options.planar_consistency_min_views
-                if ok.any():
-                    all_pts.append(acc_alt[ok] / (1.0 + sup_alt[ok, None]))
-                    all_src.append(np.ones(int(ok.sum()), np.bool_))
-                    all_depth.append(alt[retry][ok])
-                    px = pix[retry][ok]
-                    all_cols.append(np.ascontiguousarray(view.image[px[:, 1], px[:, 0]][:, ::-1]))
+                ok, fused = check(i, p_alt, alt[retry], np.ones(len(p_alt), np.bool_), True)
+                take(view, fused, np.ones(len(fused), np.bool_), alt[retry][ok], pix[retry][ok])
         progress("consistency", (i + 1) / len(views))
     if not all_pts:
         raise DenseReconstructionFailed(

@@ -682,10 +682,11 @@ def estimate_pose(
     )
     on_support = np.zeros((0, 3))
     if support is not None:
-        on_support = f_pts[np.abs(f_pts @ support[:3] + support[3]) < band / 2]
+        height = f_pts @ support[:3] + support[3]
+        on_support = f_pts[np.abs(height) < band / 2]
         # the floor or table the object stands on is not the object: a flat object laid
         # into it upside down fits it better than the object itself
-        above = np.flatnonzero(f_pts @ support[:3] + support[3] > band)
+        above = np.flatnonzero(height > band)
         if len(above) >= 30:
             scene_full = scene_full.select_by_index(above.tolist())
     timings["support_removed"] = float(len(f_pts) - len(scene_full.points))

@@ -193,6 +193,7 @@ def main() -> int:
         help="JSON overrides of the preset, e.g. '{\"far_range\": false}' (the baseline)",
     )
     parser.add_argument("--scenario", default="moved")
+    parser.add_argument("--seed", type=int, default=1, help="scene seed (when generating)")
     parser.add_argument(
         "--cases",
         default="sfm_markers,known_poses,sfm_markers_after_refined",
@@ -204,7 +205,7 @@ def main() -> int:
 
     if not (args.scene / "ground_truth.json").exists():
         t = time.perf_counter()
-        generate(args.scene, args.scenario, seed=1, options=PRESETS["demo"])
+        generate(args.scene, args.scenario, seed=args.seed, options=PRESETS["demo"])
         print(f"generated scene in {time.perf_counter() - t:.1f} s")
     reference = json.loads((args.scene / "reference.json").read_text())
     overrides = json.loads(args.options)
@@ -213,6 +214,8 @@ def main() -> int:
         "preset": args.preset,
         "overrides": overrides,
         "scene": str(args.scene),
+        "scenario": args.scenario,
+        "seed": args.seed,
         "cases": {},
     }
     gt = json.loads((args.scene / "ground_truth.json").read_text())

@@ -162,6 +162,41 @@ def test_a_floor_seen_on_both_sides_of_a_face_goes_on_past_it() -> None:
     assert not face_plane.contains(np.array([[0.5, 0.0, -0.1]]))[0]
 
 
+def test_planes_of_the_reference_cloud_are_hypotheses_too() -> None:
+    """The new capture saw the floor and the x = 2.5 wall, and only 60 points of the
+    y = -2.5 wall (too few for a plane); the reference cloud saw all three. The new
+    capture's two planes come first (the x wall turned by < 0.01° onto the rectangular layout
+    that the other wall completes); the y = -2.5 wall comes from the reference
+    with the extent the reference saw it in (x ∈ [-1.5, 1.5], not past its margin), and the
+    reference's floor and x wall are not added twice. So the floor keeps to the near side
+    of that wall too."""
+    rng = np.random.default_rng(3)
+    opts = ReconstructOptions(planar_min_points=200, planar_margin_m=0.5)
+    sparse_wall = np.c_[
+        rng.uniform(-1.5, 1.5, 60), rng.normal(-2.5, 0.003, 60), rng.uniform(0, 1, 60)
+    ]
+    new = np.concatenate([_floor_and_wall_points(rng), sparse_wall])
+    wall_y = np.c_[
+        rng.uniform(-1.5, 1.5, 3000), rng.normal(-2.5, 0.003, 3000), rng.uniform(0, 2, 3000)
+    ]
+    reference = np.concatenate([_floor_and_wall_points(rng), wall_y])
+    alone = detect_planes(new, opts)
+    planes = detect_planes(new, opts, reference)
+    assert len(alone) == 2 and len(planes) == 3
+    for a, b in zip(alone, planes[:2], strict=True):
+        assert a.normal_env @ b.normal_env > np.cos(np.radians(0.01))
+        assert abs(a.offset_m - b.offset_m) < 0.001
+    wall = planes[2]
+    assert abs(wall.normal_env[1]) > 0.9999 and abs(abs(wall.offset_m) - 2.5) < 0.002
+    assert wall.contains(np.array([[0.0, -2.5, 1.0], [1.4, -2.5, 1.9]])).all()
+    assert not wall.contains(np.array([[2.4, -2.5, 1.0], [0.0, -2.5, 3.0]])).any()
+    floor = planes[0]
+    assert floor.contains(np.array([[0.0, -2.3, 0.0]]))[0]
+    assert not floor.contains(np.array([[0.0, -2.7, 0.0], [0.5, -3.0, 0.0]])).any()
+    with pytest.raises(ShapeError, match="reference_env"):
+        detect_planes(new, opts, np.zeros((5, 2)))
+
+
 def test_detect_planes_rejects_bad_shapes_and_too_few_points() -> None:
     opts = ReconstructOptions()
     with pytest.raises(ShapeError):

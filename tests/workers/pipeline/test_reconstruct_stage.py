@@ -16,7 +16,7 @@ from workers.pipeline.reconstruct import options_from_preset, parse_cameras, rec
 from workers.pipeline.reconstruct.cli import cli
 from workers.pipeline.reconstruct.common import list_images
 from workers.pipeline.reconstruct.errors import NoReferenceFrame, TooFewImages
-from workers.pipeline.reconstruct.fusion import read_ply
+from workers.pipeline.reconstruct.fusion import read_ply, write_ply
 from workers.pipeline.reconstruct.sfm import run_sfm
 
 TUM_INTRINSICS = {
@@ -81,6 +81,37 @@ def test_known_poses_give_a_cloud_in_the_environment_frame(
     floor = q["planar"]["planes"][0]
     assert abs(abs(floor["normal"][2]) - 1.0) < 1e-3 and abs(floor["offset_m"]) < 0.002
     assert q["planar"]["pixels_filled"] >= 0 and q["planar"]["far_pixels_snapped"] == 0
+
+
+def test_a_reference_cloud_lends_its_planes_and_an_empty_one_is_refused(
+    plane_scene: Path, tmp_path: Path
+) -> None:
+    """The environment's reference cloud (its floor and a wall at x = 1.5 m, which the new
+    photos do not show) adds the wall to the planar prior's planes (the floor it shares is
+    not added twice) and the new cloud is refined against it. An empty reference cloud is
+    refused before the dense stage, with no cloud written."""
+    raw = json.loads((plane_scene / "cameras.json").read_text())
+    ref = json.loads((plane_scene / "reference.json").read_text())
+    rng = np.random.default_rng(0)
+    floor = np.c_[rng.uniform(-0.6, 0.6, (20000, 2)), np.zeros(20000)]
+    wall = np.c_[np.full(8000, 1.5), rng.uniform(-1, 1, 8000), rng.uniform(0, 1, 8000)]
+    cloud = tmp_path / "reference.ply"
+    write_ply(cloud, np.concatenate([floor, wall]), np.full((28000, 3), 128, np.uint8))
+    options = options_from_preset(planar_prior=True)
+    cams = parse_cameras(raw)
+    res = reconstruct(plane_scene / "images", tmp_path / "a", options, cams, ref, cloud)
+    planes = res.quality["planar"]["planes"]
+    assert sum(abs(abs(p["normal"][2]) - 1.0) < 1e-3 for p in planes) == 1
+    assert any(
+        abs(abs(p["normal"][0]) - 1.0) < 1e-3 and abs(abs(p["offset_m"]) - 1.5) < 0.002
+        for p in planes
+    )
+    assert res.quality["alignment_correction"] is not None
+    empty = tmp_path / "empty.ply"
+    empty.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 0\nend_header\n")
+    with pytest.raises(InputError, match="empty or unreadable"):
+        reconstruct(plane_scene / "images", tmp_path / "b", options, cams, ref, empty)
+    assert not (tmp_path / "b" / "cloud.ply").exists()
 
 
 def test_sfm_with_markers_recovers_cameras_in_metres(plane_scene: Path, tmp_path: Path) -> None:

@@ -2,7 +2,8 @@
 (ACMP, Xu & Tao 2020), on top of the SGBM depth maps.
 
 1. :func:`detect_planes`: a few dominant planes by seeded RANSAC over reliable points
-   (those that passed the multi-view consistency check), walls made exactly perpendicular
+   (those that passed the multi-view consistency check), then over the environment's
+   previous cloud where it has planes those points leave out, walls made exactly perpendicular
    to the first plane and turned onto one rectangular layout when that close to it, each
    with the cells of a 2-D grid in its own coordinates where it was seen, so a plane is not
    extended past its points beyond ``planar_margin_m``, nor across another plane where it
@@ -206,30 +207,61 @@ def _extent(
     return origin, axes, lo, _mark_cells(ij, (int(shape[0]), int(shape[1])), grow)
 
 
-def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[Plane]:
-    """Up to ``planar_max_planes`` dominant planes of (N, 3) reliable env points (metres).
+def detect_planes(
+    points_env: FloatArray, options: ReconstructOptions, reference_env: FloatArray | None = None
+) -> list[Plane]:
+    """Up to ``planar_max_planes`` dominant planes of (N, 3) reliable env points (metres),
+    then of the environment's (M, 3) ``reference_env`` cloud where given.
 
     The points are first averaged on a ``planar_voxel_m`` grid (even density). Each round
     RANSAC (``planar_ransac_iterations`` triples, seeded by ``options.seed``, inliers within
     ``planar_ransac_threshold_m``) takes the plane with the most points, refitted by least
     squares; it is kept when it has ≥ ``planar_min_points`` inliers and is not a near copy
     (within 10° and 10 cm) of one already kept, and the points within twice the threshold
-    are removed before the next round. Each plane then keeps to the side of every other
-    plane that its inliers are on, except in cells where it was seen beyond. Fewer than
-    ``planar_min_points`` points: no planes.
-    Raises ShapeError when ``points_env`` is not (N, 3).
+    are removed before the next round. The reference cloud's points that the planes found so
+    far explain are removed and the rounds go on over the rest: a wall the new capture saw
+    too little of for a plane (a 17 % SGBM cover of it in a generated after capture) is
+    still a hypothesis, with the extent where the reference saw it; :func:`fill_depths`
+    still verifies every plane depth in the new photos. Each plane then keeps to the side
+    of every other plane that its inliers are on, except in cells where it was seen beyond.
+    Fewer than ``planar_min_points`` points: no planes from them.
+    Raises ShapeError when ``points_env`` or ``reference_env`` is not (N, 3).
     """
-    pts = np.asarray(points_env, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ShapeError(f"points_env must be (N, 3), got {pts.shape}")
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
-    if len(pts) == 0:
-        return []
-    rest, _ = voxel_average(pts, options.planar_voxel_m)
     rng = np.random.default_rng(options.seed)
     thr = options.planar_ransac_threshold_m
     planes: list[Plane] = []
     members: list[FloatArray] = []
+    for name, cloud in (("points_env", points_env), ("reference_env", reference_env)):
+        if cloud is None:
+            continue
+        pts = np.asarray(cloud, dtype=np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ShapeError(f"{name} must be (N, 3), got {pts.shape}")
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        if len(pts) == 0:
+            continue
+        rest, _ = voxel_average(pts, options.planar_voxel_m)
+        for p in planes:
+            rest = rest[np.abs(rest @ p.normal_env - p.offset_m) > 2.0 * thr]
+        _find_planes(rest, planes, members, rng, options)
+    if options.planar_manhattan_deg > 0:
+        planes, members = _manhattan(planes, members, options)
+    margin = options.planar_margin_m
+    return [
+        _with_limits(p, m, planes, 2.0 * thr, margin) for p, m in zip(planes, members, strict=True)
+    ]
+
+
+def _find_planes(
+    rest: FloatArray,
+    planes: list[Plane],
+    members: list[FloatArray],
+    rng: np.random.Generator,
+    options: ReconstructOptions,
+) -> None:
+    """RANSAC rounds over (N, 3) voxel-averaged points ``rest`` (see :func:`detect_planes`),
+    appending each plane kept to ``planes`` and its inliers to ``members``."""
+    thr = options.planar_ransac_threshold_m
     for _ in range(4 * options.planar_max_planes):
         if len(planes) >= options.planar_max_planes or len(rest) < options.planar_min_points:
             break
@@ -254,12 +286,6 @@ def detect_planes(points_env: FloatArray, options: ReconstructOptions) -> list[P
             )
             members.append(rest[inl])
         rest = rest[np.abs(rest @ normal - offset) > 2.0 * thr]
-    if options.planar_manhattan_deg > 0:
-        planes, members = _manhattan(planes, members, options)
-    margin = options.planar_margin_m
-    return [
-        _with_limits(p, m, planes, 2.0 * thr, margin) for p, m in zip(planes, members, strict=True)
-    ]
 
 
 def _manhattan(

@@ -196,6 +196,11 @@ def reconstruct(
         pts, vis = sparse.points, sparse.visibility
         quality["sparse_points"] = len(pts)
     quality["images_registered"] = len(env_views)
+    ref_pts: NDArray[np.float64] | None = None
+    if reference_cloud is not None:
+        ref_pts, _ = fusion.read_ply(Path(reference_cloud))
+        if len(ref_pts) == 0:
+            raise InputError(f"reference cloud {reference_cloud} is empty or unreadable")
 
     if pycolmap.has_cuda and sparse is not None:  # pragma: no cover - no CUDA here
         clock("dense", 0.0)
@@ -216,7 +221,8 @@ def reconstruct(
         depths = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
         fill = None
         if options.planar_prior:
-            fill = _planar_prior(dense_views, depths, nbrs, options, clock, quality)
+            planes_ref = ref_pts if options.planar_reference_planes else None
+            fill = _planar_prior(dense_views, depths, nbrs, planes_ref, options, clock, quality)
             depths = fill.depths
         raw_pts, raw_cols, from_plane, raw_depth = mvs.consistent_points_split(
             dense_views,
@@ -240,11 +246,8 @@ def reconstruct(
         quality["dense_method"] = "cpu_sgbm"
 
     alignment: AlignmentResult | None = None
-    if reference_cloud is not None:
+    if ref_pts is not None:
         clock("alignment", 0.0)
-        ref_pts, _ = fusion.read_ply(Path(reference_cloud))
-        if len(ref_pts) == 0:
-            raise InputError(f"reference cloud {reference_cloud} is empty or unreadable")
         alignment = refine_alignment(measured_pts, ref_pts, options)
         if alignment.applied:
             m = alignment.env_from_new
@@ -273,18 +276,20 @@ def _planar_prior(
     views: list[mvs.DenseView],
     depths: list[NDArray[np.float32]],
     nbrs: mvs.Neighbours,
+    reference_pts: NDArray[np.float64] | None,
     options: ReconstructOptions,
     clock: _Clock,
     quality: dict[str, Any],
 ) -> planar.PlaneFill:
     """Depth maps with verified plane depths laid in (planar.py), planes detected in a first
-    consistency pass over every ``planar_seed_stride``-th pixel; records
-    ``quality["planar"]`` (planes, pixels filled, far depths replaced or snapped)."""
+    consistency pass over every ``planar_seed_stride``-th pixel, then in the environment's
+    (M, 3) ``reference_pts`` cloud when given; records ``quality["planar"]`` (planes,
+    pixels filled, far depths replaced or snapped)."""
     clock("planar", 0.0)
     seed_pts, _ = mvs.consistent_points(
         views, depths, nbrs, dataclasses.replace(options, point_stride=options.planar_seed_stride)
     )
-    found = planar.detect_planes(seed_pts, options)
+    found = planar.detect_planes(seed_pts, options, reference_pts)
     fill = planar.fill_depths(views, depths, found, options, clock)
     quality["planar"] = fill.stats
     return fill

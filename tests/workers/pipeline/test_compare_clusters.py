@@ -14,6 +14,7 @@ from workers.pipeline.compare.clusters import (
     grow_bases,
     grow_groups,
     prune_skirts,
+    walls,
 )
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import ComparisonError
@@ -96,6 +97,49 @@ def test_base_growth_gives_a_point_beneath_two_groups_to_the_nearer() -> None:
     assert low.tolist() == [0, 1] and high.tolist() == [2]
     with pytest.raises(ComparisonError):
         grow_bases([np.array([1])], pts, radius_xy=0.001, band_m=0.0)
+
+
+def _wall_with_fillet() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A wall (x 0–5 cm, y = 0, z 0–10 cm, every 2 mm) on a floor (z = 0) that reaches 2 cm
+    in front of it, and the smear stereo leaves at its foot: a fillet sloping out from the
+    wall (y = −2 … −12 mm, z = 12 … 2 mm, 1 mm down per mm out). Returns (points, the group:
+    the wall above 1 cm and the fillet, fillet indices)."""
+    xs = np.arange(0.0, 0.05, 0.002)
+    wall = [[x, 0.0, z] for x in xs for z in np.arange(0.0, 0.1, 0.002)]
+    floor = [[x, -y, 0.0] for x in xs for y in np.arange(0.002, 0.02, 0.002)]
+    fillet = [[x, -d, 0.014 - d] for x in xs for d in np.arange(0.002, 0.0121, 0.002)]
+    pts = np.array(wall + floor + fillet)
+    is_fillet = np.arange(len(pts)) >= len(wall) + len(floor)
+    group = np.flatnonzero(is_fillet | ((pts[:, 1] == 0.0) & (pts[:, 2] >= 0.01 - 1e-9)))
+    return pts, group, np.flatnonzero(is_fillet)
+
+
+def test_walls_are_the_points_with_their_group_above_them() -> None:
+    pts, group, fillet = _wall_with_fillet()
+    (wall,) = walls([group], pts, radius_xy=0.001, rise_m=0.03)
+    assert set(wall) <= set(group) - set(fillet)  # the fillet has nothing above it
+    on_wall = group[(pts[group, 1] == 0.0) & (pts[group, 2] <= 0.09)]
+    assert set(on_wall) <= set(wall)
+    assert not np.any(pts[wall, 2] > 0.097)  # nor has the wall's top row
+    with pytest.raises(ComparisonError):
+        walls([group], pts, radius_xy=0.03, rise_m=0.03)
+
+
+def test_base_growth_beneath_walls_takes_no_floor_from_under_the_fillet() -> None:
+    pts, group, _ = _wall_with_fillet()
+    # beneath every point: the floor under the fillet joins (y < 0, z = 0)
+    (everywhere,) = grow_bases([group], pts, radius_xy=0.001, band_m=0.02)
+    added = np.setdiff1d(everywhere, group)
+    assert np.any((pts[added, 1] < 0) & (pts[added, 2] == 0.0))
+    # beneath the walls only: the wall down to the floor, nothing in front of it
+    anchors = walls([group], pts, radius_xy=0.001, rise_m=0.03)
+    (beneath,) = grow_bases([group], pts, radius_xy=0.001, band_m=0.02, anchors=anchors)
+    added = np.setdiff1d(beneath, group)
+    assert set(group) <= set(beneath)
+    assert np.all(pts[added, 1] == 0.0)
+    assert pts[beneath, 2].min() == pytest.approx(0.0)
+    with pytest.raises(ComparisonError):
+        grow_bases([group, group], pts, radius_xy=0.001, band_m=0.02, anchors=anchors)
 
 
 def _post_with_skirt_and_foot() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

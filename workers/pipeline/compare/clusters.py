@@ -21,9 +21,12 @@ walls have points above them, and a low part that reaches further out keeps its 
 Base growth then completes what even the lower threshold cuts off: an object's lowest band,
 within the growth threshold of the floor it stands on (its distance to the other capture's
 floor is its height). A cluster takes the points directly beneath its own points, in
-vertical columns of a small horizontal radius, down to a fixed band below them. The
-environment frame's +z is up (the convention :func:`workers.pipeline.pose.estimate_pose`
-uses for ``up_env``).
+vertical columns of a small horizontal radius, down to a fixed band below them. Only
+beneath its walls (points with a point of the cluster above them, as for skirt pruning): a
+wall goes on down to the floor, but beneath the smear that stereo leaves at the foot (a
+fillet sloping out from the wall, seeds too where it rises above the strict threshold)
+lies only floor. The environment frame's +z is up (the convention
+:func:`workers.pipeline.pose.estimate_pose` uses for ``up_env``).
 """
 
 from __future__ import annotations
@@ -243,31 +246,71 @@ def merge_groups(
     return [members[r] for r in sorted(members)]
 
 
+def _covered(
+    points: FloatArray, group: FloatArray, radius_xy: float, rise_m: float
+) -> NDArray[np.bool_]:
+    """Mask (N,) of (N, 3) ``points`` with a point of (M, 3) ``group`` above them in the
+    square column ``|Δx|, |Δy| ≤ radius_xy``, ``radius_xy ≤ Δz ≤ rise_m`` (metres, +z up;
+    ``0 < radius_xy < rise_m``): at least as high as the column is wide, so that a noisy
+    horizontal sheet does not cover itself."""
+    if len(points) == 0 or len(group) == 0:
+        return np.zeros(len(points), dtype=bool)
+    # the column is the Chebyshev ball of radius radius_xy around its middle once z is
+    # scaled by radius_xy / half its height
+    half = 0.5 * (rise_m - radius_xy)
+    scale = np.array([1.0, 1.0, radius_xy / half])
+    lift = np.array([0.0, 0.0, radius_xy + half])
+    dist, _ = cKDTree(group * scale).query((points + lift) * scale, 1, p=np.inf)
+    return np.asarray(dist < radius_xy)
+
+
+def walls(
+    groups: Sequence[IntArray], points_env: ArrayLike, radius_xy: float, rise_m: float
+) -> list[IntArray]:
+    """The points of each group of indices into (N, 3) ``points_env`` that have a point of
+    their group above them (square column ``|Δx|, |Δy| ≤ radius_xy``,
+    ``radius_xy ≤ Δz ≤ rise_m``, metres, +z up): an object's walls, without its top faces
+    and without the smear that slopes out from its foot. Raises ComparisonError unless
+    ``0 < radius_xy < rise_m``."""
+    pts = as_points(points_env, "points_env")
+    if not (radius_xy > 0 and rise_m > radius_xy):
+        raise ComparisonError(f"walls need 0 < radius_xy < rise_m, got {radius_xy}, {rise_m}")
+    return [np.sort(g[_covered(pts[g], pts[g], radius_xy, rise_m)]) for g in groups]
+
+
 def grow_bases(
-    groups: Sequence[IntArray], points_env: ArrayLike, radius_xy: float, band_m: float
+    groups: Sequence[IntArray],
+    points_env: ArrayLike,
+    radius_xy: float,
+    band_m: float,
+    anchors: Sequence[IntArray] | None = None,
 ) -> list[IntArray]:
     """Each group of indices into (N, 3) ``points_env`` with the points beneath it added.
 
-    A point outside every group joins a group when one of the group's points lies above it
-    within the square column ``|Δx|, |Δy| ≤ radius_xy`` and ``0 < Δz ≤ band_m`` (metres,
-    +z up); a point beneath several groups joins the one whose point is nearest (Chebyshev
-    distance with Δz scaled by radius_xy / band_m, among its 8 nearest members). Returns the
-    grown groups (sorted indices; each a superset of its input). Raises ComparisonError for
-    a non-positive radius or band.
+    A point outside every group joins a group when one of the group's anchors (its points
+    in ``anchors[k]``, by default all of them) lies above it within the square column
+    ``|Δx|, |Δy| ≤ radius_xy`` and ``0 < Δz ≤ band_m`` (metres, +z up); a point beneath
+    several groups joins the one whose anchor is nearest (Chebyshev distance with Δz scaled
+    by radius_xy / band_m, among its 8 nearest anchors). Returns the grown groups (sorted
+    indices; each a superset of its input). Raises ComparisonError for a non-positive
+    radius or band, or anchors not given for every group.
     """
     pts = as_points(points_env, "points_env")
     if not radius_xy > 0 or not band_m > 0:
         raise ComparisonError(
             f"base growth needs radius_xy > 0 and band_m > 0, got {radius_xy}, {band_m}"
         )
+    if anchors is not None and len(anchors) != len(groups):
+        raise ComparisonError(f"{len(groups)} groups but {len(anchors)} anchor sets")
     if not groups:
         return []
-    members = np.concatenate(groups).astype(np.int64)
+    others = np.ones(len(pts), dtype=bool)
+    others[np.concatenate(groups).astype(np.int64)] = False
+    hang = groups if anchors is None else anchors
+    members = np.concatenate(hang).astype(np.int64)
     if members.size == 0:
         return [np.sort(g) for g in groups]
-    owner = np.repeat(np.arange(len(groups)), [len(g) for g in groups])
-    others = np.ones(len(pts), dtype=bool)
-    others[members] = False
+    owner = np.repeat(np.arange(len(hang)), [len(g) for g in hang])
     cand = np.flatnonzero(others)
     # cheap superset first: points in a voxel next to a member's voxel (side: the band)
     cand = cand[_near_voxels(pts[cand], pts[members], max(band_m, radius_xy))]
@@ -321,11 +364,6 @@ def prune_skirts(
         raise ComparisonError(f"{len(grown)} grown groups but {len(seeds)} seed groups")
     if not rise_m > radius_xy:
         raise ComparisonError(f"skirt rise {rise_m} m must exceed the column radius {radius_xy} m")
-    # the column [radius_xy, rise_m] above a point is the Chebyshev ball of radius radius_xy
-    # around its middle once z is scaled by radius_xy / half its height
-    half = 0.5 * (rise_m - radius_xy)
-    scale = np.array([1.0, 1.0, radius_xy / half])
-    lift = np.array([0.0, 0.0, radius_xy + half])
     out = []
     for g, s in zip(grown, seeds, strict=True):
         extra = np.setdiff1d(g, s)
@@ -335,10 +373,7 @@ def prune_skirts(
         near_seed = cKDTree(pts[s, :2]).query(pts[extra, :2], distance_upper_bound=width_m)[0]
         cand = extra[np.isfinite(near_seed)]
         if cand.size:
-            tree = cKDTree(pts[g] * scale)
-            dist, _ = tree.query((pts[cand] + lift) * scale, 1, p=np.inf)
-            covered = dist < radius_xy
-            drop = cand[~covered]
+            drop = cand[~_covered(pts[cand], pts[g], radius_xy, rise_m)]
             g = np.setdiff1d(g, drop)
         out.append(np.sort(g).astype(np.int64))
     return out

@@ -3,7 +3,8 @@
 Steps: C2C both ways → thresholds → candidate points → "not seen ≠ removed" filter →
 DBSCAN per side → re-projection with visibility into the side's own capture → merging of
 split clusters → hysteresis growth through points above the lower threshold, less the
-smeared floor around each foot (skirt pruning), then the band beneath (base growth) →
+smeared floor around each foot (skirt pruning), then the band beneath its walls (base
+growth) →
 identification table (thesis eq. 3.1) → change types against the twin.
 Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
 """
@@ -27,6 +28,7 @@ from workers.pipeline.compare.clusters import (
     grow_groups,
     merge_groups,
     prune_skirts,
+    walls,
 )
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.identify import containment, identify, yolo_to_boxes
@@ -179,7 +181,13 @@ def _side_clusters(
             )
         if base_band_m > 0:
             radius_xy = options.base_radius_factor * spacing_m
-            merged_idx = grow_bases(merged_idx, capture.points_env, radius_xy, base_band_m)
+            anchors = None
+            if options.base_beneath_walls:
+                wall_radius = options.skirt_radius_factor * spacing_m
+                anchors = walls(merged_idx, capture.points_env, wall_radius, options.skirt_rise_m)
+            merged_idx = grow_bases(
+                merged_idx, capture.points_env, radius_xy, base_band_m, anchors=anchors
+            )
         merged_pixels = _visible_pixels(capture, merged_idx, depth_maps, options)
     else:
         merged_pixels = []

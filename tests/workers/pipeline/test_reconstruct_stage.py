@@ -157,6 +157,23 @@ def test_presets_and_overrides() -> None:
         options_from_preset("nope")
     with pytest.raises(InputError):
         options_from_preset("default", no_such_option=1)
+    # values are checked against the option's type, naming the option
+    opts = options_from_preset(voxel_size_m=1, planar_min_points=200.0, icp_max_distances_m=[1, 2])
+    assert opts.voxel_size_m == 1.0 and isinstance(opts.voxel_size_m, float)
+    assert opts.planar_min_points == 200 and isinstance(opts.planar_min_points, int)
+    assert opts.icp_max_distances_m == (1.0, 2.0)
+    assert options_from_preset().cuda_dense is False
+    assert options_from_preset(cuda_dense=True).cuda_dense is True
+    for bad in (
+        {"cuda_dense": "yes"},
+        {"planar_min_points": 2.5},
+        {"voxel_size_m": "1"},
+        {"seed": True},
+        {"icp_max_distances_m": ["a"]},
+        {"preset": 3},
+    ):
+        with pytest.raises(InputError, match=next(iter(bad))):
+            options_from_preset(**bad)
 
 
 def test_cli_runs_and_reports_errors_as_json(

@@ -1,5 +1,5 @@
 """Fusion of consistent depth points into one cloud, outlier removal, PLY I/O, and the
-pycolmap CUDA dense path (used automatically where ``pycolmap.has_cuda``)."""
+pycolmap CUDA dense path (used where ``pycolmap.has_cuda`` and the ``cuda_dense`` option)."""
 
 from __future__ import annotations
 

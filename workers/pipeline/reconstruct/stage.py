@@ -202,7 +202,7 @@ def reconstruct(
         if len(ref_pts) == 0:
             raise InputError(f"reference cloud {reference_cloud} is empty or unreadable")
 
-    if pycolmap.has_cuda and sparse is not None:  # pragma: no cover - no CUDA here
+    if options.cuda_dense and pycolmap.has_cuda and sparse is not None:  # pragma: no cover
         clock("dense", 0.0)
         cloud_pts, cloud_cols = _cuda_dense(Path(images_dir), work_dir, sparse)
         measured_pts = cloud_pts

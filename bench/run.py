@@ -2,7 +2,8 @@
 
     python -m bench.run [--only poll,c2c] [--quick]
 
-Runs the sub-benchmarks in order (poll, upload, reconstruct, pose, scenarios, c2c, colmap),
+Runs the sub-benchmarks in order (poll, upload, reconstruct on the bench scene and on two
+other generated scenes, pose, scenarios, c2c, colmap),
 each as a subprocess so one failure does not lose the others; records each one's exit
 status and wall time and writes ``bench/results/summary.json`` with the headline figures
 of every result file. Before running, as root, installs the tools some comparisons need
@@ -155,6 +156,11 @@ def _colmap(d: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _seed_args(seed: int) -> tuple[str, ...]:
+    where = f"{TMP}/reconstruct_seed{seed}"
+    return ("--seed", str(seed), "--scene", f"{where}/scene", "--work", f"{where}/work")
+
+
 BENCHES: tuple[Bench, ...] = (
     Bench("poll", "bench.poll_bench", "poll.json", (), ("--seconds", "5"), ("wrk",), 1800, _poll),
     Bench(
@@ -174,6 +180,19 @@ BENCHES: tuple[Bench, ...] = (
             "fast",
         ),
         headline=_reconstruct,
+    ),
+    # the same cases on other generated scenes (the camera path and the objects follow the
+    # seed): how far the bench scene's figures carry
+    *(
+        Bench(
+            f"reconstruct_seed{seed}",
+            "bench.reconstruct_bench",
+            f"reconstruct_seed{seed}.json",
+            (*_seed_args(seed), "--preset", "default"),
+            (*_seed_args(seed), "--preset", "fast"),
+            headline=_reconstruct,
+        )
+        for seed in (7, 3)
     ),
     Bench(
         "pose",

@@ -95,12 +95,17 @@ def main(argv: list[str] | None = None) -> int:
                 raise SystemExit(f"reconstruction of '{capture}' failed: {job.get('error')}")
             snap = check(client.get(f"/v1/snapshots/{accepted['snapshot']['id']}"), 200)
             q = snap["quality"]
+            residual = q.get("alignment_residual_m")
+            aligned = (
+                "first snapshot: nothing to align to"
+                if residual is None
+                else f"alignment residual {1000 * residual:.1f} mm"
+            )
             print(
                 f"     {q.get('images_registered')}/{q.get('images_total')} images, "
                 f"{q.get('points')} points, "
                 f"reprojection {q.get('mean_reprojection_error_px') or 0:.2f} px, "
-                f"marker residual {1000 * (q.get('marker_residual_m') or 0):.1f} mm, "
-                f"alignment residual {1000 * (q.get('alignment_residual_m') or 0):.1f} mm"
+                f"marker residual {1000 * (q.get('marker_residual_m') or 0):.1f} mm, {aligned}"
             )
             snaps.append(snap)
 

@@ -246,3 +246,13 @@ def test_alignment_refinement_ignores_a_changed_object(opts: ReconstructOptions)
     assert np.abs(moved - probe).max() < 5e-4
     assert res.translation_m > 0.002
     assert res.residual_m < res.residual_before_m
+
+
+def test_alignment_with_nothing_to_align_is_not_applied_and_says_why() -> None:
+    """No new points (say, a capture whose SGBM measured nothing near): identity, not applied,
+    the reason names it (no ICP on an empty cloud)."""
+    ref = np.random.default_rng(3).uniform(-1, 1, (1000, 3))
+    for new in (np.zeros((0, 3)), np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.001]])):
+        res = refine_alignment(new, ref, ReconstructOptions())
+        assert not res.applied and "too few points to align" in res.reason
+        np.testing.assert_array_equal(res.env_from_new, np.eye(4))

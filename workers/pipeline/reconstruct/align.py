@@ -53,8 +53,12 @@ def refine_alignment(
     reference_points: NDArray[np.float64],
     options: ReconstructOptions,
 ) -> AlignmentResult:
-    """Robust ICP of (N, 3) ``new_points`` onto (M, 3) ``reference_points`` (env frame, m)."""
+    """Robust ICP of (N, 3) ``new_points`` onto (M, 3) ``reference_points`` (env frame, m).
+    Fewer than 3 new points (after voxel averaging): not applied, saying so."""
     src = to_o3d(voxel_average(as_points(new_points, "new_points"), options.icp_voxel_m)[0])
+    if len(src.points) < 3:
+        reason = f"too few points to align ({len(src.points)})"
+        return AlignmentResult(np.eye(4), 0.0, 0.0, 0.0, 0.0, 0.0, False, reason)
     if len(src.points) > options.icp_max_source_points:
         # ICP's cost follows the source; a seeded subsample of it against the full-density
         # target keeps the accuracy (every residual is still to the finest surface).

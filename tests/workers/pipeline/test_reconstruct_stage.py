@@ -59,7 +59,7 @@ def test_known_poses_give_a_cloud_in_the_environment_frame(
     |z| < 1 mm and p95 < 5 mm; output cameras equal the given poses; marker check < 2 mm."""
     raw = json.loads((plane_scene / "cameras.json").read_text())
     ref = json.loads((plane_scene / "reference.json").read_text())
-    options = options_from_preset(planar_prior=True)  # opt-in; its figures: options.py
+    options = options_from_preset(planar_prior=True)  # the default, named: the test reads it
     res = reconstruct(plane_scene / "images", tmp_path, options, parse_cameras(raw), ref)
     q = res.quality
     assert q["mode"] == "known_poses" and q["frame_source"] == "camera_poses"

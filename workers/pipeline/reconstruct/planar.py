@@ -36,6 +36,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from workers.pipeline.errors import ShapeError
+from workers.pipeline.geometry import as_points
 from workers.pipeline.reconstruct.common import Progress, no_progress
 from workers.pipeline.reconstruct.fusion import voxel_average
 from workers.pipeline.reconstruct.mvs import DenseView
@@ -234,9 +235,7 @@ def detect_planes(
     for name, cloud in (("points_env", points_env), ("reference_env", reference_env)):
         if cloud is None:
             continue
-        pts = np.asarray(cloud, dtype=np.float64)
-        if pts.ndim != 2 or pts.shape[1] != 3:
-            raise ShapeError(f"{name} must be (N, 3), got {pts.shape}")
+        pts = as_points(cloud, name)
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         if len(pts) == 0:
             continue
@@ -538,12 +537,9 @@ def coverage_views(
     widest first) verified fewer (0.846 / 0.784): the quarter-scale ZNCC wants views that
     see the plane at a similar scale and foreshortening. Raises ShapeError for bad shapes.
     """
-    pts = np.asarray(points_env, np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ShapeError(f"points_env must be (N, 3), got {pts.shape}")
+    points_env = as_points(points_env, "points_env")
     if len(depths) != len(views) or len(k_matrices) != len(views):
         raise ShapeError(f"{len(views)} views, {len(depths)} depth maps, {len(k_matrices)} K")
-    points_env = pts
     centre_i = views[i].env_from_cam[:3, 3]
     to_i = centre_i - points_env
     to_i /= np.maximum(np.linalg.norm(to_i, axis=1, keepdims=True), 1e-12)

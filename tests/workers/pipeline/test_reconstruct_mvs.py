@@ -13,12 +13,14 @@ from workers.pipeline.reconstruct.mvs import (
     DenseView,
     Neighbours,
     _far_partners,
+    _far_seed_partners,
     _overlay_far,
     consistent_points,
     consistent_points_split,
     disparity_window,
     far_disparity_window,
     pair_depths,
+    with_far_confirming_neighbours,
 )
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
@@ -166,17 +168,22 @@ def test_far_disparity_window_covers_from_the_minimum_depth_to_infinity_within_b
     assert far_disparity_window(260.0, 3.0, 128) == (0, 128)
 
 
+def _ring_of_12() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Centres (12, 3) and optical axes (12, 3) of 12 ring views, and (12, 12) shared sparse
+    point counts of 100 between every two of them."""
+    poses = ring_poses(12)
+    centres = np.stack([p[:3, 3] for p in poses])
+    axes = np.stack([p[:3, 2] for p in poses])
+    return centres, axes, np.full((12, 12), 100.0, np.float32)
+
+
 def test_far_partners_pair_every_view_once_with_a_wide_baseline() -> None:
     """12 views on a ring, 30° apart, looking down at the centre (axes 18° apart for
     neighbours, 34° two steps apart): with a 40° axis limit each view's far pair is with a
     view two steps away (the widest allowed baseline); every view is in exactly one far
     pair, so there are 6 pairs; with the option off there are none."""
-    poses = ring_poses(12)
-    centres = np.stack([p[:3, 3] for p in poses])
-    axes = np.stack([p[:3, 2] for p in poses])
-    shared = np.full((12, 12), 100.0, np.float32)
-    opts = ReconstructOptions(far_max_axis_angle_deg=40.0)
-    far = _far_partners(centres, axes, shared, opts)
+    centres, axes, shared = _ring_of_12()
+    far = _far_partners(centres, axes, shared, ReconstructOptions(far_max_axis_angle_deg=40.0))
     pairs = {(min(i, j), max(i, j)) for i, js in enumerate(far) for j in js}
     members = [v for pair in pairs for v in pair]
     assert sorted(members) == list(range(12))
@@ -185,6 +192,52 @@ def test_far_partners_pair_every_view_once_with_a_wide_baseline() -> None:
         assert (j - i) % 12 in (2, 10)
     no_far = ReconstructOptions(far_range=False)
     assert _far_partners(centres, axes, shared, no_far) == tuple(() for _ in range(12))
+
+
+def test_far_seed_partners_give_the_views_without_a_far_pair_of_their_own_one() -> None:
+    """The 12-view ring of the test above: the 6 views that are only the partner of an
+    earlier view's far pair each get a plane-seed partner of their own (axes within 40°,
+    not a pair already made), the other 6 none; none with the planar prior or far range
+    off."""
+    centres, axes, shared = _ring_of_12()
+    opts = ReconstructOptions(far_max_axis_angle_deg=40.0)
+    far = _far_partners(centres, axes, shared, opts)
+    seed = _far_seed_partners(centres, axes, shared, far, opts)
+    far_pairs = {(min(i, j), max(i, j)) for i, js in enumerate(far) for j in js}
+    seed_pairs = {(min(i, j), max(i, j)) for i, js in enumerate(seed) for j in js}
+    assert [len(s) for s in seed] == [0 if f else 1 for f in far] and sum(map(len, seed)) == 6
+    assert not far_pairs & seed_pairs and len(seed_pairs) == 6
+    for i, j in seed_pairs:
+        assert np.degrees(np.arccos(np.clip(axes[i] @ axes[j], -1, 1))) <= 40.0
+    for off in (ReconstructOptions(planar_prior=False), ReconstructOptions(far_range=False)):
+        assert _far_seed_partners(centres, axes, shared, far, off) == tuple(() for _ in range(12))
+
+
+def test_far_confirming_neighbours_are_the_views_whose_depths_agree() -> None:
+    """View 0's one consistency neighbour has no depth; views 3 and 5 hold the true floor
+    depth, view 6 one 10 % too deep, the rest none. With the floor counted as far, views 3
+    and 5 are added to view 0's neighbours (not 6, beyond the 3 % tolerance), then view 0's
+    pixels pass the check with two agreeing views; with one allowed, one of the two."""
+    views = _views(8)
+    truth = [_true_depth(v) for v in views]
+    depths = [np.zeros_like(t) for t in truth]
+    depths[0], depths[3], depths[5] = truth[0], truth[3], truth[5]
+    depths[6] = (truth[6] * 1.1).astype(np.float32)
+    nbrs = Neighbours(stereo=tuple(() for _ in views), consistency=((1,), *(() for _ in range(7))))
+    opts = ReconstructOptions(point_stride=1, far_min_depth_m=0.5, far_consistency_rel_tol=0.03)
+    wider = with_far_confirming_neighbours(views, depths, nbrs, opts)
+    assert wider.consistency[0][0] == 1 and set(wider.consistency[0][1:]) == {3, 5}
+    assert wider.stereo == nbrs.stereo
+    with pytest.raises(DenseReconstructionFailed):
+        consistent_points(views, depths, nbrs, opts)
+    only_0 = Neighbours(nbrs.stereo, (wider.consistency[0], *(() for _ in range(7))))
+    kept, _ = consistent_points(views, depths, only_0, opts)
+    assert len(kept) > 0.2 * (truth[0] > 0).sum()
+    assert np.median(np.abs(kept[:, 2])) < 5e-4 and np.abs(kept[:, 2]).max() < 0.01
+    one = with_far_confirming_neighbours(
+        views, depths, nbrs, ReconstructOptions(far_min_depth_m=0.5, consistency_views=1)
+    )
+    assert len(one.consistency[0]) == 2 and one.consistency[0][1] in (3, 5)
 
 
 def test_far_overlay_keeps_near_occluders_and_fills_the_rest() -> None:

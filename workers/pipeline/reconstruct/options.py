@@ -74,6 +74,10 @@ class ReconstructOptions:
     # with known poses too: on a quiet machine (load 0.9-1.3, same run, 2 runs each) far
     # pairs took known poses from 9.6 s to 10.9 s (budget 15 s), completeness 0.496 -> 0.603.
     # (Turned off for known poses in session 3 after 13.4 -> 15.6 s measured under load 1.4-1.7.)
+    # With the planar prior, each view left without a far pair of its own gets one more whose
+    # depths only seed plane detection (mvs._far_seed_partners): a generated room (seed 3)
+    # whose y = ±3 m walls its cameras see only along their image edges found no plane for
+    # them (first capture 0.839 / 0.833 complete), with them 0.939 / 0.940.
     far_max_axis_angle_deg: float = 30.0
     far_min_depth_m: float = 3.5
     far_max_disparities: int = 64

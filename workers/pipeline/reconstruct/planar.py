@@ -109,27 +109,73 @@ def _fit(points: FloatArray) -> tuple[FloatArray, float]:
     return normal, float(normal @ centre)
 
 
+def _near_copy(normals: FloatArray, offsets: FloatArray, plane: Plane) -> NDArray[np.bool_]:
+    """(K,) whether planes of (K, 3) unit normals and (K,) offsets (m) lie within 10° and
+    10 cm of ``plane``."""
+    cos = normals @ plane.normal_env
+    return np.asarray(
+        (np.abs(cos) > np.cos(np.radians(10.0)))
+        & (np.abs(offsets - plane.offset_m * np.sign(cos)) < 0.1)
+    )
+
+
+def _snapped_normals(normals: FloatArray, up: FloatArray, max_deg: float) -> FloatArray:
+    """(K, 3) unit normals, those within ``max_deg`` of perpendicular to the unit ``up`` made
+    exactly perpendicular, those within it of parallel made ±``up``."""
+    cos_up = normals @ up
+    out = normals.copy()
+    perp = np.abs(cos_up) <= np.sin(np.radians(max_deg))
+    wall = normals[perp] - cos_up[perp, None] * up
+    out[perp] = wall / np.linalg.norm(wall, axis=1, keepdims=True)
+    level = np.abs(cos_up) >= np.cos(np.radians(max_deg))
+    out[level] = np.sign(cos_up[level])[:, None] * up
+    return out
+
+
 def _ransac(
-    points: FloatArray, threshold_m: float, iterations: int, rng: np.random.Generator
+    points: FloatArray,
+    threshold_m: float,
+    iterations: int,
+    rng: np.random.Generator,
+    up: FloatArray | None = None,
+    snap_deg: float = 0.0,
+    taken: tuple[Plane, ...] = (),
 ) -> tuple[FloatArray, float, NDArray[np.bool_]]:
     """Best plane of (N, 3) points by inlier count over ``iterations`` random triples,
-    refitted twice by least squares on its inliers; (normal, offset, inlier mask)."""
+    refitted twice by least squares on its inliers; (normal, offset, inlier mask).
+
+    With ``up`` (the first plane's unit normal) every other hypothesis is instead the plane
+    through a random pair of points that contains ``up`` (a wall), and every hypothesis
+    within ``snap_deg`` of perpendicular or parallel to ``up`` is made exactly so before its
+    inliers are counted (as :func:`_orthogonalise` makes the plane found). A wall seen only
+    in a low band along its foot (10-30 cm of a 6 m wall, from the image edges) gives
+    triples that tilt it, and it lost to a plane 4° off level through the feet of several
+    walls and stray floor points, which counts few inliers once level. Hypotheses that are
+    near copies of a plane in ``taken`` (:func:`_near_copy`) are not counted: the floor's
+    noise 3-6 cm above it outcounted such a wall band, and removing it took the band's foot."""
     # hypotheses are scored on at most 4096 of the points (the counts only rank them)
     sample = points[rng.permutation(len(points))[:4096]] if len(points) > 4096 else points
     best_count = -1
     best_plane = (np.array([0.0, 0.0, 1.0]), 0.0)
     batch = 128
-    for start in range(0, iterations, batch):
+    for n_batch, start in enumerate(range(0, iterations, batch)):
         k = min(batch, iterations - start)
         tri = sample[rng.integers(0, len(sample), size=(k, 3))]
-        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        if up is not None and n_batch % 2 == 1:
+            normals = np.cross(tri[:, 1] - tri[:, 0], up)
+        else:
+            normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         norm = np.linalg.norm(normals, axis=1)
         ok = norm > 1e-9
         if not ok.any():
             continue
         normals = normals[ok] / norm[ok, None]
+        if up is not None and snap_deg > 0:
+            normals = _snapped_normals(normals, up, snap_deg)
         offsets = np.sum(normals * tri[ok, 0], axis=1)
         counts = (np.abs(sample @ normals.T - offsets) <= threshold_m).sum(axis=0)
+        for plane in taken:
+            counts[_near_copy(normals, offsets, plane)] = -1
         j = int(np.argmax(counts))
         if counts[j] > best_count:
             best_count, best_plane = int(counts[j]), (normals[j], float(offsets[j]))
@@ -153,17 +199,25 @@ def _orthogonalise(
     threshold_m: float,
 ) -> tuple[FloatArray, float, NDArray[np.bool_]]:
     """A plane within ``max_deg`` of perpendicular to the first (largest) plane made exactly
-    perpendicular (a wall on a floor), its offset the median over its inliers, which are
+    perpendicular (a wall on a floor), one within ``max_deg`` of parallel to it made exactly
+    parallel (a table top), each with its offset the median over its inliers, which are
     recounted; any other plane is returned as it is. A narrow band of far, noisy points
     (a wall's lower edge) fixes a plane's tilt about the band poorly (2-4° measured); the
-    perpendicular is the better estimate when the fitted plane is that close to it."""
+    perpendicular is the better estimate when the fitted plane is that close to it. A plane
+    a few degrees off the floor through the lower edges of several walls and stray floor
+    points (found in a generated room) keeps few inliers once made level."""
     cos_first = float(normal @ first_normal)
-    if abs(cos_first) > np.sin(np.radians(max_deg)):
+    if abs(cos_first) <= np.sin(np.radians(max_deg)):
+        snapped = normal - cos_first * first_normal
+    elif abs(cos_first) >= np.cos(np.radians(max_deg)):
+        snapped = first_normal * np.sign(cos_first)
+    else:
         return normal, float(np.median(points[inliers] @ normal)), inliers
-    snapped = normal - cos_first * first_normal
-    snapped /= np.linalg.norm(snapped)
+    snapped = snapped / np.linalg.norm(snapped)
     offset = float(np.median(points[inliers] @ snapped))
     inl = np.abs(points @ snapped - offset) <= threshold_m
+    if not inl.any():
+        return snapped, offset, inl
     offset = float(np.median(points[inl] @ snapped))
     return snapped, offset, inl
 
@@ -219,11 +273,15 @@ def detect_planes(
     ``planar_ransac_threshold_m``) takes the plane with the most points, refitted by least
     squares; it is kept when it has ≥ ``planar_min_points`` inliers and is not a near copy
     (within 10° and 10 cm) of one already kept, and the points within twice the threshold
-    are removed before the next round. The reference cloud's points that the planes found so
-    far explain are removed and the rounds go on over the rest: a wall the new capture saw
-    too little of for a plane (a 17 % SGBM cover of it in a generated after capture) is
-    still a hypothesis, with the extent where the reference saw it; :func:`fill_depths`
-    still verifies every plane depth in the new photos. Each plane then keeps to the side
+    are removed before the next round. After the first plane, with
+    ``planar_orthogonal_deg`` > 0, hypotheses and planes within that angle of perpendicular
+    or parallel to it are made exactly so (walls and level surfaces on a floor; see
+    :func:`_ransac`), and a plane that keeps too few inliers so is dropped. The reference
+    cloud's points that the planes found so far explain are removed and the rounds go on
+    over the rest: a wall the new capture saw too little of for a plane (a 17 % SGBM cover
+    of it in a generated after capture) is still a hypothesis, with the extent where the
+    reference saw it; :func:`fill_depths` still verifies every plane depth in the new
+    photos. Each plane then keeps to the side
     of every other plane that its inliers are on, except in cells where it was seen beyond.
     Fewer than ``planar_min_points`` points: no planes from them.
     Raises ShapeError when ``points_env`` or ``reference_env`` is not (N, 3).
@@ -264,19 +322,26 @@ def _find_planes(
     for _ in range(4 * options.planar_max_planes):
         if len(planes) >= options.planar_max_planes or len(rest) < options.planar_min_points:
             break
-        normal, offset, inl = _ransac(rest, thr, options.planar_ransac_iterations, rng)
+        up = planes[0].normal_env if planes and options.planar_orthogonal_deg > 0 else None
+        normal, offset, inl = _ransac(
+            rest,
+            thr,
+            options.planar_ransac_iterations,
+            rng,
+            up,
+            options.planar_orthogonal_deg,
+            tuple(planes),
+        )
         if inl.sum() < options.planar_min_points:
             break
-        duplicate = any(
-            abs(float(normal @ p.normal_env)) > np.cos(np.radians(10.0))
-            and abs(offset - p.offset_m * float(np.sign(normal @ p.normal_env))) < 0.1
-            for p in planes
-        )
-        if not duplicate and planes and options.planar_orthogonal_deg > 0:
-            normal, offset, inl = _orthogonalise(
-                rest, normal, inl, planes[0].normal_env, options.planar_orthogonal_deg, thr
-            )
-        if not duplicate:
+        # the refit may drift onto a plane already kept, or hold together only tilted
+        keep = not any(_near_copy(normal[None], np.array([offset]), p)[0] for p in planes)
+        if keep and up is not None:
+            snapped = _orthogonalise(rest, normal, inl, up, options.planar_orthogonal_deg, thr)
+            keep = int(snapped[2].sum()) >= options.planar_min_points
+            if keep:
+                normal, offset, inl = snapped
+        if keep:
             origin, axes, lo, occ = _extent(
                 rest[inl], normal, offset, options.planar_cell_m, options.planar_margin_m
             )

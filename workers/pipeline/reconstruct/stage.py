@@ -218,11 +218,12 @@ def reconstruct(
                 "no well-conditioned stereo pair (enough shared points, baseline and viewing "
                 "angle); take photos from more positions around the scene"
             )
-        depths = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
+        maps = mvs.compute_depth_maps(dense_views, nbrs, pts, vis, options, clock)
+        depths = maps.fused
         fill = None
         if options.planar_prior:
             planes_ref = ref_pts if options.planar_reference_planes else None
-            fill = _planar_prior(dense_views, depths, nbrs, planes_ref, options, clock, quality)
+            fill = _planar_prior(dense_views, maps, nbrs, planes_ref, options, clock, quality)
             depths = fill.depths
         raw_pts, raw_cols, from_plane, raw_depth = mvs.consistent_points_split(
             dense_views,
@@ -274,23 +275,29 @@ def reconstruct(
 
 def _planar_prior(
     views: list[mvs.DenseView],
-    depths: list[NDArray[np.float32]],
+    maps: mvs.DepthMaps,
     nbrs: mvs.Neighbours,
     reference_pts: NDArray[np.float64] | None,
     options: ReconstructOptions,
     clock: _Clock,
     quality: dict[str, Any],
 ) -> planar.PlaneFill:
-    """Depth maps with verified plane depths laid in (planar.py), planes detected in a first
-    consistency pass over every ``planar_seed_stride``-th pixel, then in the environment's
-    (M, 3) ``reference_pts`` cloud when given; records ``quality["planar"]`` (planes,
+    """The fused depth maps with verified plane depths laid in (planar.py), planes detected
+    in a first consistency pass over every ``planar_seed_stride``-th pixel of the plane-seed
+    maps (far depths checked against the views that confirm most of them too:
+    :func:`mvs.with_far_confirming_neighbours`), then in the environment's (M, 3)
+    ``reference_pts`` cloud when given; records ``quality["planar"]`` (planes,
     pixels filled, far depths replaced or snapped)."""
     clock("planar", 0.0)
+    seed_nbrs = mvs.with_far_confirming_neighbours(views, maps.plane_seed, nbrs, options)
     seed_pts, _ = mvs.consistent_points(
-        views, depths, nbrs, dataclasses.replace(options, point_stride=options.planar_seed_stride)
+        views,
+        maps.plane_seed,
+        seed_nbrs,
+        dataclasses.replace(options, point_stride=options.planar_seed_stride),
     )
     found = planar.detect_planes(seed_pts, options, reference_pts)
-    fill = planar.fill_depths(views, depths, found, options, clock)
+    fill = planar.fill_depths(views, maps.fused, found, options, clock)
     quality["planar"] = fill.stats
     return fill
 

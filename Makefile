@@ -14,15 +14,16 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 export HOST PORT
 
-.PHONY: help install system-packages test-tools demo serve test bench lint format openapi clean
+.PHONY: help install system-packages test-tools demo serve test bench lint format openapi option-schema clean
 
 help:
 	@echo "make demo    - run the whole service on a generated before/after scene and print the changes"
 	@echo "make test    - the test suite (needs PostgreSQL and Redis on 127.0.0.1, see README)"
 	@echo "make serve   - the embedded service (API + workers, no external servers) on HOST:PORT"
 	@echo "make bench   - benchmarks; JSON results under bench/results/"
-	@echo "make lint    - ruff, mypy, import-linter, OpenAPI freshness"
+	@echo "make lint    - ruff, mypy, import-linter, OpenAPI and option-schema freshness"
 	@echo "make openapi - regenerate openapi/openapi.json"
+	@echo "make option-schema - regenerate app/core/option_schema.json from the workers' options"
 
 $(UV):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "twindelta needs Python >= 3.11 as $(PYTHON)"; exit 1; }
@@ -77,6 +78,7 @@ lint: install
 	$(VENV)/bin/mypy workers --exclude workers/pipeline
 	$(VENV)/bin/lint-imports
 	$(VENV)/bin/twindelta openapi | diff -q - openapi/openapi.json >/dev/null || { echo "openapi/openapi.json is stale: run make openapi"; exit 1; }
+	$(VENV)/bin/python -m workers.pipeline option-schema | diff -q - app/core/option_schema.json >/dev/null || { echo "app/core/option_schema.json is stale: run make option-schema"; exit 1; }
 
 format: install
 	$(VENV)/bin/ruff check --fix .
@@ -84,6 +86,9 @@ format: install
 
 openapi: install
 	$(VENV)/bin/twindelta openapi --out openapi/openapi.json
+
+option-schema: install
+	$(VENV)/bin/python -m workers.pipeline option-schema --out app/core/option_schema.json
 
 clean:
 	rm -rf .tools $(VENV) twindelta-data demo-output

@@ -12,6 +12,7 @@ from app.core import jobs
 from app.core.enums import JobKind, SnapshotState
 from app.core.errors import Conflict, InvalidInput, NotFound
 from app.core.models import Comparison, Snapshot, new_id
+from app.core.options import check_stage_options
 
 TASK = "comparison.run"
 
@@ -25,7 +26,11 @@ def create(
     *,
     automatic: bool = False,
 ) -> Comparison:
-    """A queued comparison and its job; 422/409 when the snapshots cannot be compared."""
+    """A queued comparison and its job; 422/409 when the snapshots cannot be compared, 422
+    for options the compare stage would refuse (requested comparisons; an automatic one
+    takes the environment's, checked when it was created)."""
+    if not automatic:
+        options = check_stage_options("compare", options)
     for role, snap in (("before", before), ("after", after)):
         if snap.environment_id != environment_id:
             raise InvalidInput(f"{role}: snapshot {snap.id} belongs to another environment")

@@ -12,6 +12,7 @@ from sqlalchemy.orm import Session
 
 from app.core.errors import Conflict, InvalidInput, NotFound
 from app.core.models import Environment
+from app.core.options import check_environment_options
 
 ARUCO_DICTIONARIES = {
     f"DICT_{bits}X{bits}_{n}" for bits in (4, 5, 6, 7) for n in (50, 100, 250, 1000)
@@ -85,7 +86,7 @@ def create(
         name=name,
         classes=check_classes(classes),
         reference=check_reference(reference),
-        options=options or {},
+        options=check_environment_options(options),
     )
     session.add(env)
     try:

@@ -16,6 +16,7 @@ STAGES: dict[str, str] = {
     "compare": "workers.pipeline.compare.cli",
     "pose": "workers.pipeline.pose",
     "model": "workers.pipeline.model",
+    "option-schema": "workers.pipeline.option_schema",
 }
 
 

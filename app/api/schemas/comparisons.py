@@ -14,7 +14,10 @@ class ComparisonCreate(BaseModel):
     before: str = Field(description="snapshot id")
     after: str = Field(description="snapshot id")
     options: dict[str, Any] | None = Field(
-        default=None, description='e.g. {"threshold": {"kind": "mean_std", "k": 1.0}}'
+        default=None,
+        description='compare preset and options, e.g. {"preset": "lod"} or {"threshold": '
+        '{"kind": "mean_std", "k": 1.0}}; an unknown preset or option or a value of the wrong '
+        "type is a 422",
     )
 
 

@@ -18,7 +18,12 @@ class EnvironmentCreate(BaseModel):
         description='{"markers": {"dictionary": "DICT_4X4_50", "size": 0.15, '
         '"poses": {"<id>": <4×4 env_from_marker>}}}',
     )
-    options: dict[str, Any] | None = None
+    options: dict[str, Any] | None = Field(
+        default=None,
+        description='{"reconstruct": {"preset": "default", ...}, "compare": {"threshold": '
+        '{"kind": "mean_std", "k": 1.0}, ...}}: presets and option overrides of the two '
+        "stages; an unknown preset or option or a value of the wrong type is a 422",
+    )
 
 
 class EnvironmentRead(Model):

@@ -97,3 +97,42 @@ def test_unknown_ids_are_404(client: TestClient, keys: Keys) -> None:
     ):
         r = client.get(path, headers=keys.headers("read"))
         assert r.status_code == 404 and r.json()["error"] == "NotFound", path
+
+
+def test_bad_pipeline_options_are_422_naming_the_option(client: TestClient, keys: Keys) -> None:
+    """Options are checked against the workers' option names, presets and types when the
+    environment is posted (a job used to fail on them later); good ones are stored as given."""
+    cases = {
+        "options.reconstruct.cuda_dense must be a bool": {"reconstruct": {"cuda_dense": "yes"}},
+        "options.reconstruct: unknown reconstruct option(s) bogus": {"reconstruct": {"bogus": 1}},
+        "unknown reconstruct preset 'best'": {"reconstruct": {"preset": "best"}},
+        "options.reconstruct.planar_min_points must be an integer": {
+            "reconstruct": {"planar_min_points": 2.5}
+        },
+        "options.compare.threshold: unknown threshold key(s) sigma": {
+            "compare": {"threshold": {"kind": "mean_std", "sigma": 1}}
+        },
+        "options.compare.threshold.kind must be one of mean_std, fixed, lod": {
+            "compare": {"threshold": {"kind": "median"}}
+        },
+        "options.compare.stats_region must be one of overlap, all": {
+            "compare": {"stats_region": "some"}
+        },
+        "unknown options section(s) posing": {"posing": {}},
+        "options.compare must be an object": {"compare": [1]},
+    }
+    for message, options in cases.items():
+        r = client.post(
+            "/v1/environments",
+            json={"name": "a", "classes": ["x"], "options": options},
+            headers=keys.headers(),
+        )
+        assert r.status_code == 422, (options, r.text)
+        assert r.json()["error"] == "InvalidInput" and message in r.json()["detail"], r.text
+    good = {
+        "reconstruct": {"preset": "fast", "mvs_scale": 1, "cuda_dense": False},
+        "compare": {"threshold": {"kind": "lod", "registration": None}, "grow_threshold": None},
+    }
+    env = create(client, keys, options=good)
+    assert env["options"] == good
+    assert client.get("/v1/environments", headers=keys.headers("read")).json()[0]["id"] == env["id"]

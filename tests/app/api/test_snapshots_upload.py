@@ -553,3 +553,20 @@ def test_rejections_leave_nothing_behind(
     snap = session.get(Snapshot, first["id"])
     assert snap is not None and (snap.seq, snap.n_images, snap.n_detections) == (1, 3, 3)
     assert sent_tasks.names() == ["snapshot.process"]
+
+
+def test_comparison_options_are_checked_before_the_snapshots_state(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks
+) -> None:
+    """A requested comparison with an option the compare stage would refuse is a 422 naming
+    it; with good options the two uploaded (not yet reconstructed) snapshots are a 409."""
+    env_id = make_env(client, keys)
+    ids = [upload(client, keys, env_id, as_parts(capture())).json()["snapshot"]["id"] for _ in "ab"]
+    url = f"/v1/environments/{env_id}/comparisons"
+    body = {"before": ids[0], "after": ids[1]}
+    r = client.post(url, json={**body, "options": {"use_visibility": "no"}}, headers=keys.headers())
+    assert r.status_code == 422 and "options.use_visibility must be a bool" in r.json()["detail"]
+    r = client.post(url, json={**body, "options": {"preset": "strict"}}, headers=keys.headers())
+    assert r.status_code == 422 and "unknown compare preset 'strict'" in r.json()["detail"]
+    r = client.post(url, json={**body, "options": {"preset": "lod"}}, headers=keys.headers())
+    assert r.status_code == 409 and r.json()["error"] == "SnapshotNotReconstructed"

@@ -1,0 +1,104 @@
+"""Pipeline options as posted with an environment or a comparison, checked against the
+names, presets and types in ``option_schema.json`` (written from the workers' option classes
+by ``make option-schema``), so a bad option is a 422 when it is posted, not a failed job later.
+
+What only the stage itself can judge (a value's range, e.g. ``max_clusters: 0``) is still a
+job error with the stage's message.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from app.core.errors import InvalidInput
+
+SCHEMA_PATH = Path(__file__).with_name("option_schema.json")
+STAGES = ("reconstruct", "compare")
+
+
+@cache
+def schema() -> dict[str, Any]:
+    """The parsed ``option_schema.json``."""
+    loaded: dict[str, Any] = json.loads(SCHEMA_PATH.read_text())
+    return loaded
+
+
+def check_environment_options(options: Any) -> dict[str, Any]:
+    """An environment's ``options`` ({"reconstruct": {...}, "compare": {...}}, each optional,
+    each a preset name under "preset" and option overrides); InvalidInput naming the first
+    thing wrong."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise InvalidInput(f"options must be an object, got {options!r}")
+    unknown = sorted(set(options) - set(STAGES))
+    if unknown:
+        raise InvalidInput(
+            f"unknown options section(s) {', '.join(unknown)}; known: {', '.join(STAGES)}"
+        )
+    return {
+        stage: check_stage_options(stage, value, f"options.{stage}")
+        for stage, value in options.items()
+    }
+
+
+def check_stage_options(stage: str, options: Any, where: str = "options") -> dict[str, Any]:
+    """One stage's options (``stage`` "reconstruct" or "compare"), as given; InvalidInput
+    naming ``where`` and the option for an unknown preset or option or a value of the
+    wrong JSON type."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise InvalidInput(f"{where} must be an object, got {options!r}")
+    spec = schema()[stage]
+    if "preset" in options and options["preset"] not in spec["presets"]:
+        raise InvalidInput(
+            f"{where}.preset: unknown {stage} preset {options['preset']!r}; "
+            f"known: {', '.join(spec['presets'])}"
+        )
+    unknown = sorted(set(options) - set(spec["options"]) - {"preset"})
+    if unknown:
+        raise InvalidInput(f"{where}: unknown {stage} option(s) {', '.join(unknown)}")
+    for name, value in options.items():
+        if name != "preset":
+            _check_value(f"{where}.{name}", value, spec["options"][name])
+    return dict(options)
+
+
+def _check_value(where: str, value: Any, kind: dict[str, Any]) -> None:
+    """InvalidInput unless ``value`` fits ``kind`` (an entry of the schema)."""
+    if value is None and kind.get("nullable"):
+        return
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    t = kind["type"]
+    if t == "threshold":
+        _check_threshold(where, value)
+        return
+    ok = {
+        "bool": isinstance(value, bool),
+        "int": number and float(value).is_integer(),
+        "float": number,
+        "str": isinstance(value, str),
+        "float_list": isinstance(value, list)
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value),
+    }[t]
+    if not ok:
+        expected = {"float_list": "a list of numbers", "int": "an integer"}.get(t, f"a {t}")
+        raise InvalidInput(f"{where} must be {expected}, got {value!r}")
+    if "choices" in kind and value not in kind["choices"]:
+        raise InvalidInput(f"{where} must be one of {', '.join(kind['choices'])}, got {value!r}")
+
+
+def _check_threshold(where: str, value: Any) -> None:
+    """A threshold in its JSON form, e.g. {"kind": "mean_std", "k": 1.0}."""
+    if not isinstance(value, dict):
+        raise InvalidInput(f"{where} must be an object such as {{'kind': 'mean_std', 'k': 1.0}}")
+    keys = schema()["threshold"]
+    unknown = sorted(set(value) - set(keys))
+    if unknown:
+        raise InvalidInput(f"{where}: unknown threshold key(s) {', '.join(unknown)}")
+    for name, v in value.items():
+        _check_value(f"{where}.{name}", v, keys[name])

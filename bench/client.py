@@ -91,23 +91,29 @@ def check(response: httpx.Response, *expected: int) -> dict[str, Any]:
     return body
 
 
+def capture_parts(capture_dir: Path) -> list[tuple[str, Path]]:
+    """The multipart fields of a capture folder (images/, labels/, cameras.json when there):
+    (field name, file) pairs in upload order."""
+    parts = [
+        (field, path)
+        for field, sub in (("images", "images"), ("detections", "labels"))
+        for path in sorted((capture_dir / sub).iterdir())
+    ]
+    cameras = capture_dir / "cameras.json"
+    return [*parts, ("cameras", cameras)] if cameras.exists() else parts
+
+
 def upload_capture(
     client: httpx.Client, environment_id: str, capture_dir: Path, idempotency_key: str | None = None
 ) -> dict[str, Any]:
-    """POST a capture folder (images/, labels/, cameras.json) as multipart files."""
+    """POST a capture folder (:func:`capture_parts`) as multipart files, streamed."""
     handles = []
     try:
         files: list[tuple[str, tuple[str, Any]]] = []
-        for field, sub in (("images", "images"), ("detections", "labels")):
-            for path in sorted((capture_dir / sub).iterdir()):
-                handle = path.open("rb")
-                handles.append(handle)
-                files.append((field, (path.name, handle)))
-        cameras = capture_dir / "cameras.json"
-        if cameras.exists():
-            handle = cameras.open("rb")
+        for field, path in capture_parts(capture_dir):
+            handle = path.open("rb")
             handles.append(handle)
-            files.append(("cameras", ("cameras.json", handle)))
+            files.append((field, (path.name, handle)))
         headers = {"Idempotency-Key": idempotency_key} if idempotency_key else {}
         return check(
             client.post(

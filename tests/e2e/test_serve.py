@@ -14,6 +14,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from bench.client import capture_parts
 from tests.e2e.conftest import Processes, api_client, free_port, poll_job
 from workers.pipeline.synth import PRESETS, generate
 
@@ -21,14 +22,7 @@ pytestmark = pytest.mark.e2e
 
 
 def capture_files(capture_dir: Path) -> list[tuple[str, tuple[str, bytes]]]:
-    files = [
-        ("images", (p.name, p.read_bytes())) for p in sorted((capture_dir / "images").iterdir())
-    ]
-    files += [
-        ("detections", (p.name, p.read_bytes())) for p in sorted((capture_dir / "labels").iterdir())
-    ]
-    files.append(("cameras", ("cameras.json", (capture_dir / "cameras.json").read_bytes())))
-    return files
+    return [(field, (p.name, p.read_bytes())) for field, p in capture_parts(capture_dir)]
 
 
 @pytest.fixture(scope="module")

@@ -176,15 +176,13 @@ def _far_partners(
     n = len(centres)
     if not options.far_range:
         return tuple(() for _ in range(n))
-    cos_max = np.cos(np.radians(options.far_max_axis_angle_deg))
     far: list[tuple[int, ...]] = []
     covered: set[int] = set()
     for i in range(n):
         if i in covered:
             far.append(())
             continue
-        ok = (axes @ axes[i] >= cos_max) & (shared[i] >= 30)
-        ok[i] = False
+        ok = _far_candidates(i, axes, shared, options)
         if not ok.any():
             far.append(())
             continue
@@ -192,8 +190,7 @@ def _far_partners(
         free[list(covered)] = False
         if free.any():  # a partner without a far pair of its own gets one from this pair
             ok = free
-        dist = np.where(ok, np.linalg.norm(centres - centres[i], axis=1), -1.0)
-        j = int(np.argmax(dist))
+        j = _widest(i, ok, centres)
         far.append((j,))
         covered.update((i, j))
     return tuple(far)
@@ -220,21 +217,34 @@ def _far_seed_partners(
     n = len(centres)
     if not options.far_range or not options.planar_prior:
         return tuple(() for _ in range(n))
-    cos_max = np.cos(np.radians(options.far_max_axis_angle_deg))
     paired = {(min(i, j), max(i, j)) for i, js in enumerate(far) for j in js}
     out: list[tuple[int, ...]] = []
     for i in range(n):
-        ok = (axes @ axes[i] >= cos_max) & (shared[i] >= 30)
-        ok[i] = False
-        for j in range(n):
-            ok[j] &= (min(i, j), max(i, j)) not in paired
-        if far[i] or not ok.any():
+        ok = np.zeros(n, np.bool_) if far[i] else _far_candidates(i, axes, shared, options)
+        for k in map(int, np.flatnonzero(ok)):
+            ok[k] = (min(i, k), max(i, k)) not in paired
+        if not ok.any():
             out.append(())
             continue
-        j = int(np.argmax(np.where(ok, np.linalg.norm(centres - centres[i], axis=1), -1.0)))
+        j = _widest(i, ok, centres)
         out.append((j,))
         paired.add((min(i, j), max(i, j)))
     return tuple(out)
+
+
+def _far_candidates(
+    i: int, axes: FloatArray, shared: NDArray[np.float32], options: ReconstructOptions
+) -> NDArray[np.bool_]:
+    """(V,) the views that may be view i's far-range partner: sharing ≥ 30 sparse points
+    with it, optical axes within ``far_max_axis_angle_deg`` of its own, not i itself."""
+    ok = (axes @ axes[i] >= np.cos(np.radians(options.far_max_axis_angle_deg))) & (shared[i] >= 30)
+    ok[i] = False
+    return np.asarray(ok)
+
+
+def _widest(i: int, ok: NDArray[np.bool_], centres: FloatArray) -> int:
+    """The view of mask ``ok`` (any set) whose centre is farthest from view i's."""
+    return int(np.argmax(np.where(ok, np.linalg.norm(centres - centres[i], axis=1), -1.0)))
 
 
 def with_far_confirming_neighbours(
@@ -264,12 +274,11 @@ def with_far_confirming_neighbours(
         own = neighbours.consistency[i]
         counts: list[tuple[int, int]] = []
         if len(pts):
-            pts32 = pts.astype(np.float32)
-            for j, other in enumerate(views):
+            rel_tol = np.full(len(pts), tol, np.float32)
+            for j in range(len(views)):
                 if j == i or j in own:
                     continue
-                z, d = _sample_depth(other, depths[j], pts32)
-                n_ok = int(np.count_nonzero((d > 0) & (np.abs(d - z) <= tol * z)))
+                n_ok = int(_agreement(views, depths, pts, rel_tol, (j,))[0].sum())
                 if n_ok >= min_confirmed:
                     counts.append((n_ok, j))
         counts.sort(reverse=True)
@@ -537,7 +546,8 @@ def compute_depth_maps(
     """
     pairs = _undirected(neighbours.stereo)
     far_pairs = _undirected(neighbours.far)
-    seed_pairs = [p for p in _undirected(neighbours.far_seed) if p not in set(far_pairs)]
+    fused_far = set(far_pairs)
+    seed_pairs = [p for p in _undirected(neighbours.far_seed) if p not in fused_far]
     n_jobs = len(pairs) + len(far_pairs) + len(seed_pairs)
     done = 0
 

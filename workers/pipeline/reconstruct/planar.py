@@ -119,9 +119,11 @@ def _near_copy(normals: FloatArray, offsets: FloatArray, plane: Plane) -> NDArra
     )
 
 
-def _snapped_normals(normals: FloatArray, up: FloatArray, max_deg: float) -> FloatArray:
+def _snapped_normals(
+    normals: FloatArray, up: FloatArray, max_deg: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
     """(K, 3) unit normals, those within ``max_deg`` of perpendicular to the unit ``up`` made
-    exactly perpendicular, those within it of parallel made ±``up``."""
+    exactly perpendicular, those within it of parallel made ±``up``; and (K,) which were."""
     cos_up = normals @ up
     out = normals.copy()
     perp = np.abs(cos_up) <= np.sin(np.radians(max_deg))
@@ -129,7 +131,7 @@ def _snapped_normals(normals: FloatArray, up: FloatArray, max_deg: float) -> Flo
     out[perp] = wall / np.linalg.norm(wall, axis=1, keepdims=True)
     level = np.abs(cos_up) >= np.cos(np.radians(max_deg))
     out[level] = np.sign(cos_up[level])[:, None] * up
-    return out
+    return out, perp | level
 
 
 def _ransac(
@@ -171,7 +173,7 @@ def _ransac(
             continue
         normals = normals[ok] / norm[ok, None]
         if up is not None and snap_deg > 0:
-            normals = _snapped_normals(normals, up, snap_deg)
+            normals, _ = _snapped_normals(normals, up, snap_deg)
         offsets = np.sum(normals * tri[ok, 0], axis=1)
         counts = (np.abs(sample @ normals.T - offsets) <= threshold_m).sum(axis=0)
         for plane in taken:
@@ -206,14 +208,10 @@ def _orthogonalise(
     perpendicular is the better estimate when the fitted plane is that close to it. A plane
     a few degrees off the floor through the lower edges of several walls and stray floor
     points (found in a generated room) keeps few inliers once made level."""
-    cos_first = float(normal @ first_normal)
-    if abs(cos_first) <= np.sin(np.radians(max_deg)):
-        snapped = normal - cos_first * first_normal
-    elif abs(cos_first) >= np.cos(np.radians(max_deg)):
-        snapped = first_normal * np.sign(cos_first)
-    else:
+    snapped_all, was_snapped = _snapped_normals(normal[None], first_normal, max_deg)
+    if not was_snapped[0]:
         return normal, float(np.median(points[inliers] @ normal)), inliers
-    snapped = snapped / np.linalg.norm(snapped)
+    snapped = snapped_all[0]
     offset = float(np.median(points[inliers] @ snapped))
     inl = np.abs(points @ snapped - offset) <= threshold_m
     if not inl.any():
@@ -281,8 +279,8 @@ def detect_planes(
     over the rest: a wall the new capture saw too little of for a plane (a 17 % SGBM cover
     of it in a generated after capture) is still a hypothesis, with the extent where the
     reference saw it; :func:`fill_depths` still verifies every plane depth in the new
-    photos. Each plane then keeps to the side
-    of every other plane that its inliers are on, except in cells where it was seen beyond.
+    photos. Each plane then keeps to the side of every other plane that its inliers are on,
+    except in cells where it was seen beyond.
     Fewer than ``planar_min_points`` points: no planes from them.
     Raises ShapeError when ``points_env`` or ``reference_env`` is not (N, 3).
     """

@@ -13,6 +13,11 @@ COPY workers ./workers
 COPY migrations ./migrations
 COPY alembic.ini ./
 RUN uv sync --frozen --no-dev
+# The process runs as uid 1000. A named volume mounted at /data takes this folder's owner on
+# first use, so create it owned by that user (files, the SQLite file, the beat schedule).
+RUN useradd --uid 1000 --user-group --no-create-home --home-dir /data twindelta \
+ && mkdir -p /data \
+ && chown 1000:1000 /data
 USER 1000:1000
 EXPOSE 8000
 CMD ["uvicorn", "app.main:create_app", "--factory", "--host", "0.0.0.0", "--port", "8000"]

@@ -56,6 +56,8 @@ class Settings(BaseSettings):
     @field_validator("bootstrap_admin_key")
     @classmethod
     def _refuse_weak_key(cls, value: str | None) -> str | None:
+        if value is not None and not value.strip():
+            return None  # ``KEY=`` (docker-compose's default when unset) means no key
         if value is not None and (len(value) < 16 or value.lower() in {"changeme", "change-me"}):
             raise ValueError("TWINDELTA_BOOTSTRAP_ADMIN_KEY must be at least 16 characters")
         return value

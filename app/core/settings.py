@@ -32,6 +32,17 @@ class Settings(BaseSettings):
     max_image_pixels: int = 50_000_000
     max_detection_lines: int = 10_000
     min_images: int = 3
+    # An image's decoded size (width × height × channels × bytes per sample), checked from
+    # its header before anything is decoded: a 16-bit RGBA PNG costs 8 bytes a pixel.
+    max_image_decoded_bytes: int = 200_000_000
+    # Archives: every member (folders too) counts; an archive may inflate at most this many
+    # times its compressed size (JPEG and PNG barely compress; a zip bomb inflates ~1000×).
+    max_archive_members: int = 10_000
+    max_archive_ratio: float = 100.0
+    # Request bodies are capped before they are read: JSON bodies at ``max_json_bytes``,
+    # a snapshot upload at ``max_upload_bytes`` and an object model at ``max_file_bytes``
+    # (each plus the multipart framing).
+    max_json_bytes: int = 2 * 1024**2
 
     # Jobs: a running job whose heartbeat is older than this is failed by the sweeper; a
     # queued job older than ``requeue_after_s`` is sent again (a lost broker message).

@@ -1,7 +1,7 @@
 """``python -m workers.pipeline compare BEFORE_DIR AFTER_DIR [options]``.
 
 Reads two capture folders (see files.py), compares them and writes the comparison JSON
-(CONTRACT.md "A comparison", without the service's ids) to ``--out`` or stdout, and the
+(docs/contract.md "A comparison", without the service's ids) to ``--out`` or stdout, and the
 changed points of each cluster to ``--clusters-dir`` as ``cluster_<id>_<side>.npy`` when
 asked. Exit codes: 0 ok, 2 bad input, 3 comparison failed.
 """

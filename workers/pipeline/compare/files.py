@@ -2,7 +2,7 @@
 
 A capture folder holds:
 - ``cloud.ply``: the snapshot's point cloud, environment frame, metres (colours optional);
-- ``cameras.json``: CONTRACT.md's format, ``{"intrinsics": {"model", "width", "height",
+- ``cameras.json``: docs/contract.md's format, ``{"intrinsics": {"model", "width", "height",
   "params"}}`` or ``{"intrinsics_per_image": {name: {...}}}`` and ``{"poses": {name: 4×4
   env_from_cam}}``; models PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, OPENCV (distortion
   parameters are ignored: images are taken as undistorted);

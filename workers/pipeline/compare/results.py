@@ -1,4 +1,4 @@
-"""Typed results of the compare stage and their contract JSON (CONTRACT.md "A comparison")."""
+"""Typed results of the compare stage and their contract JSON (docs/contract.md "A comparison")."""
 
 from __future__ import annotations
 
@@ -176,7 +176,7 @@ class CompareResult:
     stats: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        """The comparison JSON of CONTRACT.md, less ``id``/``before``/``after``/``job``
+        """The comparison JSON of docs/contract.md, less ``id``/``before``/``after``/``job``
         (the service adds those)."""
         return {
             "options": self.options.to_json(),

@@ -1,4 +1,4 @@
-"""cameras.json (CONTRACT.md) and the per-view camera type shared by the stage's modules.
+"""cameras.json (docs/contract.md) and the per-view camera type shared by the stage's modules.
 
 Intrinsics follow OpenCV's pixel convention: the centre of the top-left pixel is (0, 0).
 COLMAP puts it at (0.5, 0.5); :func:`Intrinsics.colmap_params` and

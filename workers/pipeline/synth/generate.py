@@ -11,7 +11,7 @@ Layout under ``out_dir``::
 ``room`` (RoomOptions, enough to rebuild the room meshes), ``reference`` (as
 reference.json), ``before`` / ``after`` ([{"instance_id", "object", "class_id",
 "env_from_object", "support"}]), ``changes`` ([{"type", "object", "instance_id", "pose",
-"previous_pose", "replaced_object", "replaced_instance_id"}], CONTRACT.md field meanings)
+"previous_pose", "replaced_object", "replaced_instance_id"}], docs/contract.md field meanings)
 and ``camera_poses`` ({capture: {image name: env_from_cam}}). Poses are 4×4 row-major
 lists, metres; cameras have OpenCV axes and pixel centres at integer coordinates.
 """

@@ -1,6 +1,6 @@
 """The printed reference: ArUco markers (DICT_4X4_50) lying flat on the floor.
 
-Marker frame (CONTRACT.md): origin at the marker centre, x right, y up, z out of the printed
+Marker frame (docs/contract.md): origin at the marker centre, x right, y up, z out of the printed
 face; corners (−s/2, s/2, 0), (s/2, s/2, 0), (s/2, −s/2, 0), (−s/2, −s/2, 0). On the floor
 the printed face looks up, so marker z is environment z.
 """
@@ -105,7 +105,7 @@ class MarkerSheet:
         return out, on_paper
 
     def reference(self) -> dict[str, Any]:
-        """The environment ``reference`` JSON of CONTRACT.md."""
+        """The environment ``reference`` JSON of docs/contract.md."""
         return {
             "markers": {
                 "dictionary": DICTIONARY,

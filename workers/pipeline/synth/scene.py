@@ -49,7 +49,7 @@ class StaticSurface:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A before/after pair with its ground-truth changes (CONTRACT.md change fields)."""
+    """A before/after pair with its ground-truth changes (docs/contract.md change fields)."""
 
     name: str
     seed: int
@@ -179,7 +179,7 @@ class _Placer:
 
 
 def _change(kind: str, new: Placement | None, old: Placement | None) -> dict[str, Any]:
-    """A ground-truth change record with CONTRACT.md field names."""
+    """A ground-truth change record with docs/contract.md field names."""
     ref = new if new is not None else old
     assert ref is not None
     return {

@@ -13,6 +13,7 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from app.api import metrics as metrics_routes
+from app.api.json_guard import JsonGuard
 from app.api.limits import BodyGuard
 from app.api.routes import (
     comparisons,
@@ -80,6 +81,7 @@ def create_app() -> FastAPI:
         codes = {404: "NotFound", 405: "MethodNotAllowed", 401: "Unauthorized"}
         return _error(exc.status_code, codes.get(exc.status_code, "HTTPError"), str(exc.detail))
 
+    app.add_middleware(JsonGuard)
     app.add_middleware(BodyGuard)  # key and size checked before a body is read
     app.add_middleware(metrics_routes.MetricsMiddleware)
     app.include_router(health.router)

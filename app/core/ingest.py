@@ -18,8 +18,9 @@ SHA-256) returns the first snapshot and job; with other files it is a 409.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
-import json
 import math
 import os
 import re
@@ -27,10 +28,13 @@ import shutil
 import stat
 import struct
 import tarfile
+import time
+import uuid
 import zipfile
 import zlib
 from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
@@ -38,13 +42,14 @@ from typing import Any, BinaryIO
 from PIL import Image, UnidentifiedImageError
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import environments, jobs, snapshots
+from app.core import environments, jobs, jsondoc, snapshots
 from app.core.enums import JobKind, SnapshotState
 from app.core.errors import (
     Conflict,
     DomainError,
+    InsufficientStorage,
     InvalidInput,
     PayloadTooLarge,
     UnsupportedMedia,
@@ -63,6 +68,7 @@ CAMERAS_MAX_BYTES = 32 * 1024**2
 CLASSES_MAX_BYTES = 1024**2
 MAX_LINE_BYTES = 1024
 CAMERA_MODELS = {"PINHOLE": 4, "SIMPLE_RADIAL": 4, "OPENCV": 8}
+MAX_IMAGE_SIDE = 1_000_000  # pixels: far past any camera, and safe as a 32-bit int
 _SEQ_RETRIES = 5
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
@@ -360,15 +366,8 @@ def parse_cameras(source: BinaryIO, where: str, image_names: Collection[str]) ->
     data = source.read(CAMERAS_MAX_BYTES + 1)
     if len(data) > CAMERAS_MAX_BYTES:
         raise _too_large("PayloadTooLarge", f"{where}: larger than {CAMERAS_MAX_BYTES} bytes")
-    try:
-        doc = json.loads(data.decode("utf-8-sig"))
-    except UnicodeDecodeError as exc:
-        raise _invalid("InvalidCameras", f"{where}: not UTF-8 text") from exc
-    except json.JSONDecodeError as exc:
-        raise _invalid(
-            "InvalidCameras",
-            f"{where} line {exc.lineno} column {exc.colno}: not JSON ({exc.msg})",
-        ) from exc
+    # Strict JSON: NaN, 1e400, 5,000-digit numbers and deep nesting are InvalidCameras too.
+    doc = jsondoc.loads(data, where, code="InvalidCameras")
     if not isinstance(doc, dict):
         raise _invalid("InvalidCameras", f"{where}: expected a JSON object")
     unknown = sorted(set(doc) - {"intrinsics", "intrinsics_per_image", "poses"})
@@ -417,24 +416,33 @@ def _check_intrinsics(value: Any, where: str) -> dict[str, Any]:
     if not isinstance(value, dict):
         raise _invalid("InvalidCameras", f"{where}: expected {{model, width, height, params}}")
     model = value.get("model")
-    if model not in CAMERA_MODELS:
+    if not isinstance(model, str) or model not in CAMERA_MODELS:
         raise _invalid(
-            "InvalidCameras", f"{where}: model {model!r} is not one of {sorted(CAMERA_MODELS)}"
+            "InvalidCameras",
+            f"{where}: model {jsondoc.show(model)} is not one of {sorted(CAMERA_MODELS)}",
         )
     size = []
     for key in ("width", "height"):
         dim = value.get(key)
-        if not isinstance(dim, int) or isinstance(dim, bool) or dim <= 0:
-            raise _invalid("InvalidCameras", f"{where}: {key} must be a positive integer")
+        if not isinstance(dim, int) or isinstance(dim, bool) or not 0 < dim <= MAX_IMAGE_SIDE:
+            raise _invalid(
+                "InvalidCameras",
+                f"{where}: {key} must be a positive integer (at most {MAX_IMAGE_SIDE})",
+            )
         size.append(dim)
     params = value.get("params")
     expected = CAMERA_MODELS[model]
     if not isinstance(params, list) or len(params) != expected:
         raise _invalid(
-            "InvalidCameras", f"{where}: model {model} takes {expected} params, got {params!r}"
+            "InvalidCameras",
+            f"{where}: model {model} takes {expected} params, got {jsondoc.show(params)}",
         )
     if not all(
-        isinstance(p, int | float) and not isinstance(p, bool) and math.isfinite(p) for p in params
+        isinstance(p, int | float)
+        and not isinstance(p, bool)
+        and abs(p) < jsondoc.INT_LIMIT
+        and math.isfinite(p)
+        for p in params
     ):
         raise _invalid("InvalidCameras", f"{where}: params must be finite numbers")
     return {
@@ -489,20 +497,29 @@ def _stage_file(staging: _Staging, kind: str, name: str, where: str, source: Bin
     remaining = settings.max_upload_bytes - staging.n_bytes
     limit = min(settings.max_file_bytes, remaining)
     target = staging.root / kind / name if kind else staging.root / name
-    target.parent.mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
     size = 0
-    with target.open("wb") as out:
-        while chunk := source.read(1024 * 1024):
-            size += len(chunk)
-            if size > limit:
-                if limit == settings.max_file_bytes:
-                    detail = f"{where}: larger than {settings.max_file_bytes} bytes"
-                else:
-                    detail = f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
-                raise _too_large("PayloadTooLarge", detail)
-            digest.update(chunk)
-            out.write(chunk)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with target.open("wb") as out:
+            while chunk := source.read(1024 * 1024):
+                size += len(chunk)
+                if size > limit:
+                    if limit == settings.max_file_bytes:
+                        detail = f"{where}: larger than {settings.max_file_bytes} bytes"
+                    else:
+                        detail = (
+                            f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
+                        )
+                    raise _too_large("PayloadTooLarge", detail)
+                if staging.budget is not None:
+                    staging.budget(size)
+                digest.update(chunk)
+                out.write(chunk)
+    except OSError as exc:
+        if _disk_full(exc):  # not the archive's fault: a clean 507, never "damaged"
+            raise _no_space(where) from exc
+        raise
     staging.n_bytes += size
     return _Staged(path=target, where=where, size=size, sha256=digest.hexdigest())
 
@@ -721,14 +738,24 @@ def create_snapshot(
     cameras: UploadPart | None = None,
     archive: UploadPart | None = None,
     idempotency_key: str | None = None,
+    lookup: sessionmaker[Session] | None = None,
 ) -> Ingested:
     """Validate and store an uploaded capture, insert its snapshot (state ``uploaded``, the
     environment's next ``seq``) and queue ``snapshot.process`` after commit.
 
     Give loose files (``images``, ``detections``, ``cameras``) or one ``archive``. Errors are
-    DomainErrors naming the file and line; nothing is stored when one is raised.
+    DomainErrors naming the file and line; nothing is stored when one is raised; a full disk
+    is a 507 ``InsufficientStorage``.
+
+    ``lookup`` opens short read-only sessions for what is read before the files are checked
+    (the environment, an earlier request with the same ``Idempotency-Key``). The API gives
+    one, so that ``session`` touches the database only for the insert: on SQLite its write
+    lock is then held for milliseconds, not while the files are staged and checked. Without
+    it, ``session`` does the reads too.
     """
-    env = environments.get(session, environment_id)
+    with _reading(session, lookup) as reader:
+        env = environments.get(reader, environment_id)
+        env_id, classes = env.id, list(env.classes)
     if archive is not None and (images or detections or cameras is not None):
         raise _invalid(
             "InvalidUpload", "send either an archive or images/detections/cameras, not both"
@@ -738,8 +765,8 @@ def create_snapshot(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise _invalid("InvalidUpload", "Idempotency-Key: 1 to 200 characters")
 
-    staging_dir = storage.tmp_dir()
-    try:
+    sweep_staging(storage)
+    with _staging_dir(storage) as staging_dir:
         staging = _Staging(root=staging_dir, settings=settings)
         if archive is not None:
             _stage_archive(staging, archive)
@@ -758,13 +785,107 @@ def create_snapshot(
                 )
         digest = staging.digest()
         if idempotency_key is not None:
-            replay = _replay(session, env.id, idempotency_key, digest)
+            with _reading(session, lookup) as reader:
+                replay = _replay(reader, env_id, idempotency_key, digest)
+            if replay is not None and lookup is not None:
+                replay = _replay(session, env_id, idempotency_key, digest)  # in this session
             if replay is not None:
                 return replay
-        checked = _validate(staging, env.classes)
-        return _insert(session, storage, env, staging, checked, idempotency_key, digest)
+        checked = _validate(staging, classes)
+        return _insert(session, storage, env_id, staging, checked, idempotency_key, digest)
+
+
+@contextmanager
+def _reading(session: Session, lookup: sessionmaker[Session] | None) -> Iterator[Session]:
+    """``session``, or a short read-only session of ``lookup`` (closed, never committed)."""
+    if lookup is None:
+        yield session
+        return
+    with lookup() as reader:
+        yield reader
+
+
+# --- staging folders ------------------------------------------------------------------------
+
+STAGING = ".tmp"
+_STALE_UNLOCKED_S = 3600.0
+
+
+def _disk_full(exc: OSError) -> bool:
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _no_space(where: str) -> InsufficientStorage:
+    return InsufficientStorage(
+        f"{where}: the server's storage is full; nothing of this upload was kept, try again "
+        "later"
+    )
+
+
+@contextmanager
+def _staging_dir(storage: LocalStorage) -> Iterator[Path]:
+    """A private staging folder ``.tmp/<id>``, removed on the way out. While it exists this
+    process holds an exclusive ``flock`` on ``.tmp/<id>.lock``: the kernel drops the lock
+    when the process dies, which is how :func:`sweep_staging` tells an abandoned folder (an
+    API killed mid-upload) from one in use by another process."""
+    base = storage.path(STAGING)
+    name = uuid.uuid4().hex
+    lock_path, root = base / f"{name}.lock", base / name
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock_path, os.O_CREAT | os.O_RDWR, 0o600)
+    except OSError as exc:
+        if _disk_full(exc):
+            raise _no_space("upload") from exc
+        raise
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        try:
+            root.mkdir()
+        except OSError as exc:
+            if _disk_full(exc):
+                raise _no_space("upload") from exc
+            raise
+        yield root
     finally:
-        shutil.rmtree(staging_dir, ignore_errors=True)
+        shutil.rmtree(root, ignore_errors=True)
+        lock_path.unlink(missing_ok=True)
+        os.close(fd)
+
+
+def sweep_staging(storage: LocalStorage) -> int:
+    """Remove staging folders whose process is gone (their lock is free), and unlocked
+    leftovers older than an hour; returns how many were removed. Safe beside live uploads
+    in other processes: a held lock is never taken."""
+    base = storage.path(STAGING)
+    if not base.is_dir():
+        return 0
+    removed = 0
+    for lock_path in base.glob("*.lock"):
+        try:
+            fd = os.open(lock_path, os.O_RDWR)
+        except FileNotFoundError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue  # a live upload
+            shutil.rmtree(base / lock_path.stem, ignore_errors=True)
+            lock_path.unlink(missing_ok=True)
+            removed += 1
+        finally:
+            os.close(fd)
+    cutoff = time.time() - _STALE_UNLOCKED_S
+    for folder in base.iterdir():
+        if (
+            folder.is_dir()
+            and not (base / f"{folder.name}.lock").exists()
+            and folder.stat().st_mtime < cutoff
+        ):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ingested | None:
@@ -791,14 +912,15 @@ def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ing
 def _insert(
     session: Session,
     storage: LocalStorage,
-    env: Environment,
+    env_id: str,
     staging: _Staging,
     checked: _Checked,
     idempotency_key: str | None,
     digest: str,
 ) -> Ingested:
     # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
-    session.execute(select(Environment.id).where(Environment.id == env.id).with_for_update())
+    session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
+    env = environments.get(session, env_id)  # 404 if it went while the files were checked
     snapshot_id = new_id()
     prefix = f"snapshots/{snapshot_id}"
     snap: Snapshot | None = None

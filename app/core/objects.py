@@ -4,14 +4,15 @@ symmetry (worker side)."""
 
 from __future__ import annotations
 
-import json
+import math
 from pathlib import PurePosixPath
 from typing import Any, BinaryIO
 
+import numpy as np
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core import jobs
+from app.core import jobs, jsondoc
 from app.core.enums import JobKind
 from app.core.errors import Conflict, InvalidInput, NotFound, PayloadTooLarge
 from app.core.models import Job, LibraryObject, new_id, utcnow
@@ -21,29 +22,78 @@ TASK = "object.prepare"
 MODEL_SUFFIXES = {".ply", ".obj", ".stl", ".glb", ".off", ".pcd"}
 UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 SYMMETRY_KINDS = {"auto", "none", "discrete", "continuous"}
+SYMMETRY_KEYS = {"kind", "axis", "origin", "rotations", "appearance_breaks"}
 
 
 def parse_symmetry(value: str | None) -> dict[str, Any]:
     """``auto`` (default), ``none`` or a JSON spec such as
-    ``{"kind": "continuous", "axis": [0, 0, 1]}`` or
-    ``{"kind": "discrete", "rotations": [<4×4>, ...]}``."""
+    ``{"kind": "continuous", "axis": [0, 0, 1], "origin": [0, 0, 0]}`` or
+    ``{"kind": "discrete", "rotations": [<4×4>, ...]}`` (optional ``appearance_breaks``),
+    checked the way the worker will read it (finite non-zero axis, proper 4×4 rotations);
+    InvalidInput naming the part (``symmetry.axis``) otherwise."""
     if value is None or value.strip() in {"", "auto"}:
         return {"kind": "auto"}
     if value.strip() == "none":
         return {"kind": "none"}
-    try:
-        spec = json.loads(value)
-    except json.JSONDecodeError as exc:
-        raise InvalidInput(f"symmetry: expected auto, none or a JSON object ({exc.msg})") from exc
+    spec = jsondoc.loads(value, "symmetry", root="symmetry")
     if not isinstance(spec, dict) or spec.get("kind") not in SYMMETRY_KINDS:
         raise InvalidInput(f"symmetry: 'kind' must be one of {sorted(SYMMETRY_KINDS)}")
+    unknown = sorted(set(spec) - SYMMETRY_KEYS)
+    if unknown:
+        raise InvalidInput(
+            f"symmetry: unknown key(s) {', '.join(jsondoc.show(k) for k in unknown[:5])}; "
+            f"known: {', '.join(sorted(SYMMETRY_KEYS))}"
+        )
+    if not isinstance(spec.get("appearance_breaks", False), bool):
+        raise InvalidInput("symmetry.appearance_breaks: true or false")
     if spec["kind"] == "continuous":
-        axis = spec.get("axis")
-        if not (isinstance(axis, list) and len(axis) == 3 and any(float(a) for a in axis)):
+        axis = _vector(spec.get("axis"), "symmetry.axis")
+        if sum(a * a for a in axis) ** 0.5 < 1e-9:
             raise InvalidInput("symmetry.axis: a non-zero 3-vector in the model frame")
-    if spec["kind"] == "discrete" and not isinstance(spec.get("rotations"), list):
-        raise InvalidInput("symmetry.rotations: a list of 4×4 matrices")
+        if "origin" in spec:
+            _vector(spec["origin"], "symmetry.origin")
+    rotations = spec.get("rotations")
+    if spec["kind"] == "discrete" or rotations is not None:
+        if not isinstance(rotations, list) or not rotations:
+            raise InvalidInput("symmetry.rotations: a non-empty list of 4×4 rotation matrices")
+        for i, matrix in enumerate(rotations):
+            _rotation(matrix, f"symmetry.rotations[{i}]")
     return spec
+
+
+def _vector(value: Any, where: str) -> list[float]:
+    """Three finite numbers (not bools, not strings, not null)."""
+    if not (isinstance(value, list) and len(value) == 3 and all(_finite(v) for v in value)):
+        raise InvalidInput(f"{where}: three finite numbers [x, y, z], got {jsondoc.show(value)}")
+    return [float(v) for v in value]
+
+
+def _finite(value: Any) -> bool:
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and abs(value) < jsondoc.INT_LIMIT
+        and math.isfinite(value)
+    )
+
+
+def _rotation(matrix: Any, where: str) -> None:
+    """A 4×4 proper rotation (about a point) with last row 0 0 0 1, with the worker's
+    tolerances (``workers.pipeline.symmetry``)."""
+    if not (
+        isinstance(matrix, list)
+        and len(matrix) == 4
+        and all(
+            isinstance(row, list) and len(row) == 4 and all(map(_finite, row)) for row in matrix
+        )
+    ):
+        raise InvalidInput(f"{where}: a 4×4 matrix of finite numbers")
+    m = np.asarray(matrix, dtype=np.float64)
+    r = m[:3, :3]
+    if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) < 0.99:
+        raise InvalidInput(f"{where}: the 3×3 block is not a proper rotation")
+    if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
+        raise InvalidInput(f"{where}: the last row must be [0, 0, 0, 1]")
 
 
 def format_problem(suffix: str, head: bytes, size_bytes: int) -> str | None:

@@ -9,11 +9,13 @@ job error with the stage's message.
 from __future__ import annotations
 
 import json
+import math
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 from app.core.errors import InvalidInput
+from app.core.jsondoc import INT_LIMIT, show
 
 SCHEMA_PATH = Path(__file__).with_name("option_schema.json")
 STAGES = ("reconstruct", "compare")
@@ -33,7 +35,7 @@ def check_environment_options(options: Any) -> dict[str, Any]:
     if options is None:
         return {}
     if not isinstance(options, dict):
-        raise InvalidInput(f"options must be an object, got {options!r}")
+        raise InvalidInput(f"options must be an object, got {show(options)}")
     unknown = sorted(set(options) - set(STAGES))
     if unknown:
         raise InvalidInput(
@@ -52,11 +54,11 @@ def check_stage_options(stage: str, options: Any, where: str = "options") -> dic
     if options is None:
         return {}
     if not isinstance(options, dict):
-        raise InvalidInput(f"{where} must be an object, got {options!r}")
+        raise InvalidInput(f"{where} must be an object, got {show(options)}")
     spec = schema()[stage]
     if "preset" in options and options["preset"] not in spec["presets"]:
         raise InvalidInput(
-            f"{where}.preset: unknown {stage} preset {options['preset']!r}; "
+            f"{where}.preset: unknown {stage} preset {show(options['preset'])}; "
             f"known: {', '.join(spec['presets'])}"
         )
     unknown = sorted(set(options) - set(spec["options"]) - {"preset"})
@@ -68,28 +70,47 @@ def check_stage_options(stage: str, options: Any, where: str = "options") -> dic
     return dict(options)
 
 
+def _number(value: Any) -> bool:
+    """A JSON number the workers can use: not a bool, an int within 64 bits (10**400 would
+    overflow float()), a finite float."""
+    if isinstance(value, bool):
+        return False
+    if isinstance(value, int):
+        return -INT_LIMIT <= value < INT_LIMIT
+    return isinstance(value, float) and math.isfinite(value)
+
+
 def _check_value(where: str, value: Any, kind: dict[str, Any]) -> None:
     """InvalidInput unless ``value`` fits ``kind`` (an entry of the schema)."""
     if value is None and kind.get("nullable"):
         return
-    number = isinstance(value, int | float) and not isinstance(value, bool)
     t = kind["type"]
     if t == "threshold":
         _check_threshold(where, value)
         return
+    if t == "float_list" and isinstance(value, list):
+        for i, item in enumerate(value):
+            if not _number(item):
+                raise InvalidInput(f"{where}[{i}] must be a finite number, got {show(item)}")
+        return
     ok = {
         "bool": isinstance(value, bool),
-        "int": number and float(value).is_integer(),
-        "float": number,
+        "int": _number(value) and float(value).is_integer(),
+        "float": _number(value),
         "str": isinstance(value, str),
-        "float_list": isinstance(value, list)
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value),
+        "float_list": False,
     }[t]
     if not ok:
-        expected = {"float_list": "a list of numbers", "int": "an integer"}.get(t, f"a {t}")
-        raise InvalidInput(f"{where} must be {expected}, got {value!r}")
+        expected = {
+            "float_list": "a list of numbers",
+            "int": "an integer (64-bit)",
+            "float": "a finite number",
+        }.get(t, f"a {t}")
+        raise InvalidInput(f"{where} must be {expected}, got {show(value)}")
     if "choices" in kind and value not in kind["choices"]:
-        raise InvalidInput(f"{where} must be one of {', '.join(kind['choices'])}, got {value!r}")
+        raise InvalidInput(
+            f"{where} must be one of {', '.join(kind['choices'])}, got {show(value)}"
+        )
 
 
 def _check_threshold(where: str, value: Any) -> None:

@@ -15,8 +15,8 @@ from sqlalchemy.orm import Session
 
 from app.core import comparisons, environments, events, jobs, objects, snapshots, twin
 from app.core.db import transaction
-from app.core.enums import ComparisonState, EventType, JobState, ObjectState
-from app.core.models import Change, Job, SnapshotImage, utcnow
+from app.core.enums import ComparisonState, EventType, ObjectState
+from app.core.models import Change, SnapshotImage, utcnow
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.options import options_from_json
 from workers.pipeline.compare.results import CompareResult
@@ -57,7 +57,7 @@ class ComparisonOutcome:
 
 
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist, on_failure)
+    return run_job(job_id, _compute, _persist)
 
 
 def _capture(session: Session, snapshot_id: str) -> CaptureFiles:
@@ -259,12 +259,3 @@ def _histogram(distances_m: Any, threshold_m: float, bins: int = 60) -> dict[str
     top = max(2.0 * threshold_m, float(np.percentile(d, 99)) if len(d) else 0.0, 1e-6)
     counts, edges = np.histogram(np.clip(d, 0.0, top), bins=bins, range=(0.0, top))
     return {"bin_width_m": float(edges[1] - edges[0]), "counts": counts.tolist()}
-
-
-def on_failure(session: Session, job: Job, code: str, detail: str) -> None:
-    del code, detail
-    if job.comparison_id is None:
-        return
-    comparison = comparisons.get(session, job.comparison_id)
-    cancelled = job.state == JobState.cancelled
-    comparison.state = ComparisonState.cancelled if cancelled else ComparisonState.failed

@@ -11,14 +11,13 @@ from sqlalchemy.orm import Session
 from app.core import objects
 from app.core.db import transaction
 from app.core.enums import ObjectState
-from app.core.models import Job
 from workers.pipeline.model import MODEL_PRESETS, PreparedModel, prepare_model
 from workers.pipeline.symmetry import spec_from_json, spec_to_json
 from workers.runner import JobContext, run_job
 
 
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist, on_failure)
+    return run_job(job_id, _compute, _persist)
 
 
 def artifacts_key(object_id: str) -> str:
@@ -60,10 +59,3 @@ def _persist(session: Session, ctx: JobContext, model: PreparedModel) -> None:
     obj.n_points = int(model.points.shape[0])
     obj.symmetry = spec_to_json(model.symmetry)
     obj.artifacts_key = key
-
-
-def on_failure(session: Session, job: Job, code: str, detail: str) -> None:
-    del code, detail
-    if job.object_id is not None:
-        obj = objects.get(session, job.object_id)
-        obj.state = ObjectState.failed

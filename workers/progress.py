@@ -4,6 +4,8 @@ The pipeline calls ``progress(stage, fraction)``; writes are throttled to one ev
 ``interval_s`` (stage changes are written at once), and each write reads the cancel intent:
 when the user cancelled, the next call raises :class:`Cancelled` and the stage unwinds. A
 heartbeat thread keeps ``heartbeat_at`` fresh while a long library call reports nothing.
+A write that meets a transient database fault (a lock, a PostgreSQL restart) is skipped,
+never raised into the computation: the next report writes again.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from collections.abc import Callable, Mapping
 from app.core import jobs
 from app.core.db import transaction
 from workers.pipeline.errors import Cancelled
+from workers.retry import is_transient
 
 log = logging.getLogger(__name__)
 
@@ -44,9 +47,16 @@ class ProgressReporter:
     def _write(self, stage: str | None, fraction: float | None) -> None:
         with self._lock:
             self._last_write = time.monotonic()
-            with transaction() as session:
-                if jobs.report(session, self.job_id, self.attempt, stage, fraction):
-                    self._stop_requested = True
+            try:
+                with transaction() as session:
+                    if jobs.report(session, self.job_id, self.attempt, stage, fraction):
+                        self._stop_requested = True
+            except Exception as exc:
+                if not is_transient(exc):
+                    raise
+                log.warning(
+                    "progress of job %s not written (next report retries): %s", self.job_id, exc
+                )
 
     def _beat(self) -> None:
         while not self._done.wait(self.heartbeat_s):

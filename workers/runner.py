@@ -1,13 +1,21 @@
 """The shape every job task has: claim → compute with no open session → persist.
 
-``run_job(job_id, compute, persist, on_failure)``:
+``run_job(job_id, compute, persist)``:
 1. claim the job in a short transaction (conditional UPDATE; nothing to do if another
    worker has it or it is already final, so a redelivered message is harmless);
 2. call ``compute(ctx)`` holding no database session; it reports progress through
    ``ctx.progress`` (which also raises Cancelled when the user cancelled);
 3. in one transaction, mark the job succeeded (only if this attempt still owns it: the
    attempt number is a fencing token) and ``persist`` the result, so results are written
-   exactly once; on any failure mark the job failed with a code and call ``on_failure``.
+   exactly once; on a failure mark the job failed (or cancelled) with a code, and its
+   subject with it (:func:`app.core.lifecycle.settle`).
+
+Transient database faults (a lock past the busy timeout, a PostgreSQL restart) are not the
+job's failure. Progress writes skip them; the claim, the final write and the failure write
+are retried for up to ``Settings.db_retry_s``; one met inside ``compute`` gives the job back
+to the queue. A final write that cannot be retried safely (``persist`` had begun moving
+files) or a database down past the bound leaves the job ``running`` without a heartbeat,
+for the sweeper to requeue: never ``failed`` for a fault that was not the job's.
 """
 
 from __future__ import annotations
@@ -16,6 +24,7 @@ import logging
 import os
 import shutil
 import socket
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,7 +32,7 @@ from typing import TypeVar
 
 from sqlalchemy.orm import Session
 
-from app.core import jobs
+from app.core import jobs, lifecycle
 from app.core.db import transaction
 from app.core.enums import JobState
 from app.core.errors import DomainError
@@ -32,6 +41,7 @@ from app.core.settings import Settings, get_settings
 from app.core.storage import LocalStorage
 from workers.pipeline.errors import Cancelled, PipelineError
 from workers.progress import ProgressReporter
+from workers.retry import FIRST_DELAY_S, MAX_DELAY_S, is_transient, retry_transient
 
 log = logging.getLogger(__name__)
 R = TypeVar("R")
@@ -66,16 +76,16 @@ def run_job(
     job_id: str,
     compute: Callable[[JobContext], R],
     persist: Callable[[Session, JobContext, R], None],
-    on_failure: Callable[[Session, Job, str, str], None] | None = None,
 ) -> str:
-    """Run one job to a final state; returns what happened (for logs and tests)."""
+    """Run one job to a final state; returns what happened (for logs and tests): succeeded,
+    failed, cancelled, skipped (not ours to run), lost (another attempt owns it), requeued
+    (a transient database error) or deferred (left running for the sweeper)."""
     settings = get_settings()
-    with transaction() as session:
-        attempt = jobs.claim(session, job_id, worker_name())
+    bound = settings.db_retry_s
+    attempt = retry_transient(lambda: _claim(job_id), bound_s=bound, what=f"claim of job {job_id}")
     if attempt is None:
         return "skipped"
-    with transaction() as session:
-        job = jobs.get(session, job_id)
+    job = retry_transient(lambda: _read(job_id), bound_s=bound, what=f"read of job {job_id}")
     storage = LocalStorage(settings.resolved_storage_dir)
     work_dir = storage.path(f".work/{job_id}")
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -87,60 +97,113 @@ def run_job(
         with reporter:
             result = compute(ctx)
             reporter.check_cancelled()
-        with transaction() as session:
-            if jobs.finish(session, job_id, attempt, JobState.succeeded) is None:
-                log.warning("job %s attempt %s lost ownership; result discarded", job_id, attempt)
-                return "lost"
-            persist(session, ctx, result)
-        outcome = "succeeded"
+        outcome = _succeed(ctx, persist, result)
     except Cancelled:
-        outcome = _fail(
-            job_id, attempt, JobState.cancelled, "Cancelled", "cancelled by request", on_failure
-        )
+        outcome = _end(ctx, JobState.cancelled, "Cancelled", "cancelled by request")
     except (PipelineError, JobFailure, DomainError) as exc:
-        outcome = _fail(job_id, attempt, JobState.failed, exc.code, exc.detail, on_failure)
+        outcome = _end(ctx, JobState.failed, exc.code, exc.detail)
     except Exception as exc:
-        log.exception("job %s failed unexpectedly", job_id)
-        outcome = _fail(
-            job_id,
-            attempt,
-            JobState.failed,
-            "InternalError",
-            f"{type(exc).__name__}: {exc}",
-            on_failure,
-        )
+        if is_transient(exc):
+            log.warning("job %s met a transient database error: %s", job_id, exc)
+            outcome = _requeue(ctx, f"{type(exc).__name__}: {exc}")
+        else:
+            log.exception("job %s failed unexpectedly", job_id)
+            outcome = _end(ctx, JobState.failed, "InternalError", f"{type(exc).__name__}: {exc}")
     if outcome != "lost":
         shutil.rmtree(work_dir, ignore_errors=True)
     return outcome
 
 
-def _fail(
-    job_id: str,
-    attempt: int,
-    state: JobState,
-    code: str,
-    detail: str,
-    on_failure: Callable[[Session, Job, str, str], None] | None,
-) -> str:
+def _claim(job_id: str) -> int | None:
     with transaction() as session:
-        job = jobs.finish(session, job_id, attempt, state, error_code=code, error_detail=detail)
-        if job is None:
-            return "lost"
-        if on_failure is not None:
-            on_failure(session, job, code, detail)
-        if state == JobState.failed:
-            jobs.record_failed(session, job)
-    return str(state)
+        return jobs.claim(session, job_id, worker_name())
 
 
-def on_failure_of(kind: str) -> Callable[[Session, Job, str, str], None] | None:
-    """The failure handler of a job kind (marks its snapshot, comparison or object failed),
-    for failures decided outside the task, such as the sweeper's."""
-    from workers import comparison, objects, snapshot
+def _read(job_id: str) -> Job:
+    with transaction() as session:
+        return jobs.get(session, job_id)
 
-    handlers: dict[str, Callable[[Session, Job, str, str], None]] = {
-        "snapshot": snapshot.on_failure,
-        "comparison": comparison.on_failure,
-        "object": objects.on_failure,
-    }
-    return handlers.get(str(kind))
+
+def _succeed(ctx: JobContext, persist: Callable[[Session, JobContext, R], None], result: R) -> str:
+    """Mark the job succeeded and persist its result in one transaction. A transient error
+    before ``persist`` began is retried (nothing outside the database was touched yet); one
+    after it gives the job back to the queue, since ``persist`` may have moved files."""
+    job_id, attempt = ctx.job.id, ctx.attempt
+    deadline = time.monotonic() + ctx.settings.db_retry_s
+    delay = FIRST_DELAY_S
+    while True:
+        began = False
+        try:
+            with transaction() as session:
+                if jobs.finish(session, job_id, attempt, JobState.succeeded) is None:
+                    log.warning(
+                        "job %s attempt %s lost ownership; result discarded", job_id, attempt
+                    )
+                    return "lost"
+                began = True
+                persist(session, ctx, result)
+            return "succeeded"
+        except Exception as exc:
+            if not is_transient(exc):
+                raise
+            if began:
+                log.warning("job %s: the database failed during persist: %s", job_id, exc)
+                return _requeue(ctx, f"{type(exc).__name__}: {exc}")
+            if time.monotonic() + delay > deadline:
+                log.error("job %s: database unavailable; left for the sweeper: %s", job_id, exc)
+                return "deferred"
+            log.warning("job %s: final write failed, retrying in %.1f s: %s", job_id, delay, exc)
+        time.sleep(delay)
+        delay = min(delay * 2, MAX_DELAY_S)
+
+
+def _end(ctx: JobContext, state: JobState, code: str, detail: str) -> str:
+    """End the attempt failed or cancelled, its subject with it; retried on transient
+    errors, and left for the sweeper when the database stays away."""
+    job_id, attempt = ctx.job.id, ctx.attempt
+
+    def end() -> str:
+        with transaction() as session:
+            job = jobs.finish(session, job_id, attempt, state, error_code=code, error_detail=detail)
+            if job is None:
+                return "lost"
+            lifecycle.settle(session, job)
+        return str(state)
+
+    return _or_defer(ctx, end, f"end of job {job_id}")
+
+
+def _requeue(ctx: JobContext, detail: str) -> str:
+    """After a transient database error: back to the queue while attempts remain (the
+    sweeper's rule), else failed ``DatabaseUnavailable``; cancelled when the user asked."""
+    job_id, attempt, settings = ctx.job.id, ctx.attempt, ctx.settings
+
+    def give_back() -> str:
+        with transaction() as session:
+            job = jobs.get(session, job_id)
+            if job.state != JobState.running or job.attempts != attempt:
+                return "lost"
+            if job.cancel_requested:
+                state, code, why = JobState.cancelled, "Cancelled", "cancelled by request"
+            elif job.attempts >= settings.max_job_attempts:
+                state, code = JobState.failed, "DatabaseUnavailable"
+                why = f"database error on the last of {job.attempts} attempts: {detail}"
+            else:
+                return "requeued" if jobs.requeue(session, job_id, attempt) else "lost"
+            ended = jobs.finish(session, job_id, attempt, state, error_code=code, error_detail=why)
+            if ended is None:
+                return "lost"
+            lifecycle.settle(session, ended)
+            return str(state)
+
+    return _or_defer(ctx, give_back, f"requeue of job {job_id}")
+
+
+def _or_defer(ctx: JobContext, write: Callable[[], str], what: str) -> str:
+    try:
+        return retry_transient(write, bound_s=ctx.settings.db_retry_s, what=what)
+    except Exception as exc:
+        if not is_transient(exc):
+            raise
+        log.error("%s: database unavailable; the job is left for the sweeper: %s", what, exc)
+        return "deferred"

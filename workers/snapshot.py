@@ -12,8 +12,8 @@ from sqlalchemy.orm import Session
 
 from app.core import comparisons, environments, events, ingest, snapshots
 from app.core.db import transaction
-from app.core.enums import EventType, JobState, SnapshotState
-from app.core.models import Job, utcnow
+from app.core.enums import EventType, SnapshotState
+from app.core.models import utcnow
 from workers.pipeline.reconstruct.cameras import load_cameras
 from workers.pipeline.reconstruct.options import options_from_preset
 from workers.pipeline.reconstruct.stage import ReconstructionResult, reconstruct
@@ -52,7 +52,7 @@ class SnapshotInputs:
 
 
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist, on_failure)
+    return run_job(job_id, _compute, _persist)
 
 
 def _load(ctx: JobContext) -> SnapshotInputs:
@@ -139,12 +139,3 @@ def _persist(
             dict(env.options.get("compare", {})),
             automatic=True,
         )
-
-
-def on_failure(session: Session, job: Job, code: str, detail: str) -> None:
-    if job.snapshot_id is None:
-        return
-    snap = snapshots.get(session, job.snapshot_id)
-    cancelled = job.state == JobState.cancelled
-    snap.state = SnapshotState.cancelled if cancelled else SnapshotState.failed
-    snap.quality = {**(snap.quality or {}), "error": {"code": code, "detail": detail}}

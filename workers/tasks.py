@@ -11,7 +11,7 @@ from __future__ import annotations
 import importlib
 import logging
 
-from app.core import jobs
+from app.core import jobs, lifecycle
 from app.core.db import transaction
 from app.core.settings import get_settings
 from workers.celery_app import app
@@ -35,7 +35,7 @@ def _run(job_id: str, module: str) -> str:
                 f"worker cannot start: {type(exc).__name__}: {exc}",
             )
             if job is not None:
-                jobs.record_failed(session, job)
+                lifecycle.settle(session, job)
         return "failed"
     outcome: str = glue.run(job_id)
     return outcome
@@ -61,16 +61,12 @@ def prepare_object(job_id: str) -> str:
 
 @app.task(name="maintenance.sweep")
 def sweep() -> dict[str, int]:
-    """Re-send lost queued jobs; requeue or fail running jobs whose heartbeat stopped."""
-    from workers.runner import on_failure_of
-
+    """Re-send lost queued jobs; requeue or fail running jobs whose heartbeat stopped (each
+    job on its own: one that cannot be handled is logged and never stops the others)."""
     with transaction() as session:
         counts = jobs.sweep(session, get_settings())
-        for job in session.info.pop("failed_jobs", []):
-            handler = on_failure_of(job.kind)
-            if handler is not None:
-                handler(session, job, job.error_code or "WorkerLost", job.error_detail or "")
-            jobs.record_failed(session, job)
-    if any(counts.values()):
+    if counts["errors"]:
+        log.error("sweep: %s", counts)
+    elif any(counts.values()):
         log.info("sweep: %s", counts)
     return counts

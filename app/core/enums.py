@@ -41,6 +41,7 @@ class ObjectState(StrEnum):
     processing = "processing"
     ready = "ready"
     failed = "failed"
+    cancelled = "cancelled"
 
 
 class ComparisonState(StrEnum):
@@ -63,6 +64,7 @@ class EventType(StrEnum):
     snapshot_reconstructed = "snapshot.reconstructed"
     comparison_completed = "comparison.completed"
     job_failed = "job.failed"
+    job_cancelled = "job.cancelled"
 
 
 class DeliveryState(StrEnum):

@@ -18,8 +18,6 @@ SHA-256) returns the first snapshot and job; with other files it is a 409.
 
 from __future__ import annotations
 
-import errno
-import fcntl
 import hashlib
 import math
 import os
@@ -28,13 +26,10 @@ import shutil
 import stat
 import struct
 import tarfile
-import time
-import uuid
 import zipfile
 import zlib
 from collections.abc import Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
@@ -42,14 +37,13 @@ from typing import Any, BinaryIO
 from PIL import Image, UnidentifiedImageError
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from app.core import environments, jobs, jsondoc, snapshots
 from app.core.enums import JobKind, SnapshotState
 from app.core.errors import (
     Conflict,
     DomainError,
-    InsufficientStorage,
     InvalidInput,
     PayloadTooLarge,
     UnsupportedMedia,
@@ -497,29 +491,20 @@ def _stage_file(staging: _Staging, kind: str, name: str, where: str, source: Bin
     remaining = settings.max_upload_bytes - staging.n_bytes
     limit = min(settings.max_file_bytes, remaining)
     target = staging.root / kind / name if kind else staging.root / name
+    target.parent.mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
     size = 0
-    try:
-        target.parent.mkdir(parents=True, exist_ok=True)
-        with target.open("wb") as out:
-            while chunk := source.read(1024 * 1024):
-                size += len(chunk)
-                if size > limit:
-                    if limit == settings.max_file_bytes:
-                        detail = f"{where}: larger than {settings.max_file_bytes} bytes"
-                    else:
-                        detail = (
-                            f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
-                        )
-                    raise _too_large("PayloadTooLarge", detail)
-                if staging.budget is not None:
-                    staging.budget(size)
-                digest.update(chunk)
-                out.write(chunk)
-    except OSError as exc:
-        if _disk_full(exc):  # not the archive's fault: a clean 507, never "damaged"
-            raise _no_space(where) from exc
-        raise
+    with target.open("wb") as out:
+        while chunk := source.read(1024 * 1024):
+            size += len(chunk)
+            if size > limit:
+                if limit == settings.max_file_bytes:
+                    detail = f"{where}: larger than {settings.max_file_bytes} bytes"
+                else:
+                    detail = f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
+                raise _too_large("PayloadTooLarge", detail)
+            digest.update(chunk)
+            out.write(chunk)
     staging.n_bytes += size
     return _Staged(path=target, where=where, size=size, sha256=digest.hexdigest())
 
@@ -738,24 +723,14 @@ def create_snapshot(
     cameras: UploadPart | None = None,
     archive: UploadPart | None = None,
     idempotency_key: str | None = None,
-    lookup: sessionmaker[Session] | None = None,
 ) -> Ingested:
     """Validate and store an uploaded capture, insert its snapshot (state ``uploaded``, the
     environment's next ``seq``) and queue ``snapshot.process`` after commit.
 
     Give loose files (``images``, ``detections``, ``cameras``) or one ``archive``. Errors are
-    DomainErrors naming the file and line; nothing is stored when one is raised; a full disk
-    is a 507 ``InsufficientStorage``.
-
-    ``lookup`` opens short read-only sessions for what is read before the files are checked
-    (the environment, an earlier request with the same ``Idempotency-Key``). The API gives
-    one, so that ``session`` touches the database only for the insert: on SQLite its write
-    lock is then held for milliseconds, not while the files are staged and checked. Without
-    it, ``session`` does the reads too.
+    DomainErrors naming the file and line; nothing is stored when one is raised.
     """
-    with _reading(session, lookup) as reader:
-        env = environments.get(reader, environment_id)
-        env_id, classes = env.id, list(env.classes)
+    env = environments.get(session, environment_id)
     if archive is not None and (images or detections or cameras is not None):
         raise _invalid(
             "InvalidUpload", "send either an archive or images/detections/cameras, not both"
@@ -765,8 +740,8 @@ def create_snapshot(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise _invalid("InvalidUpload", "Idempotency-Key: 1 to 200 characters")
 
-    sweep_staging(storage)
-    with _staging_dir(storage) as staging_dir:
+    staging_dir = storage.tmp_dir()
+    try:
         staging = _Staging(root=staging_dir, settings=settings)
         if archive is not None:
             _stage_archive(staging, archive)
@@ -785,107 +760,13 @@ def create_snapshot(
                 )
         digest = staging.digest()
         if idempotency_key is not None:
-            with _reading(session, lookup) as reader:
-                replay = _replay(reader, env_id, idempotency_key, digest)
-            if replay is not None and lookup is not None:
-                replay = _replay(session, env_id, idempotency_key, digest)  # in this session
+            replay = _replay(session, env.id, idempotency_key, digest)
             if replay is not None:
                 return replay
-        checked = _validate(staging, classes)
-        return _insert(session, storage, env_id, staging, checked, idempotency_key, digest)
-
-
-@contextmanager
-def _reading(session: Session, lookup: sessionmaker[Session] | None) -> Iterator[Session]:
-    """``session``, or a short read-only session of ``lookup`` (closed, never committed)."""
-    if lookup is None:
-        yield session
-        return
-    with lookup() as reader:
-        yield reader
-
-
-# --- staging folders ------------------------------------------------------------------------
-
-STAGING = ".tmp"
-_STALE_UNLOCKED_S = 3600.0
-
-
-def _disk_full(exc: OSError) -> bool:
-    return exc.errno in (errno.ENOSPC, errno.EDQUOT)
-
-
-def _no_space(where: str) -> InsufficientStorage:
-    return InsufficientStorage(
-        f"{where}: the server's storage is full; nothing of this upload was kept, try again "
-        "later"
-    )
-
-
-@contextmanager
-def _staging_dir(storage: LocalStorage) -> Iterator[Path]:
-    """A private staging folder ``.tmp/<id>``, removed on the way out. While it exists this
-    process holds an exclusive ``flock`` on ``.tmp/<id>.lock``: the kernel drops the lock
-    when the process dies, which is how :func:`sweep_staging` tells an abandoned folder (an
-    API killed mid-upload) from one in use by another process."""
-    base = storage.path(STAGING)
-    name = uuid.uuid4().hex
-    lock_path, root = base / f"{name}.lock", base / name
-    try:
-        base.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock_path, os.O_CREAT | os.O_RDWR, 0o600)
-    except OSError as exc:
-        if _disk_full(exc):
-            raise _no_space("upload") from exc
-        raise
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        try:
-            root.mkdir()
-        except OSError as exc:
-            if _disk_full(exc):
-                raise _no_space("upload") from exc
-            raise
-        yield root
+        checked = _validate(staging, env.classes)
+        return _insert(session, storage, env, staging, checked, idempotency_key, digest)
     finally:
-        shutil.rmtree(root, ignore_errors=True)
-        lock_path.unlink(missing_ok=True)
-        os.close(fd)
-
-
-def sweep_staging(storage: LocalStorage) -> int:
-    """Remove staging folders whose process is gone (their lock is free), and unlocked
-    leftovers older than an hour; returns how many were removed. Safe beside live uploads
-    in other processes: a held lock is never taken."""
-    base = storage.path(STAGING)
-    if not base.is_dir():
-        return 0
-    removed = 0
-    for lock_path in base.glob("*.lock"):
-        try:
-            fd = os.open(lock_path, os.O_RDWR)
-        except FileNotFoundError:
-            continue
-        try:
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                continue  # a live upload
-            shutil.rmtree(base / lock_path.stem, ignore_errors=True)
-            lock_path.unlink(missing_ok=True)
-            removed += 1
-        finally:
-            os.close(fd)
-    cutoff = time.time() - _STALE_UNLOCKED_S
-    for folder in base.iterdir():
-        if (
-            folder.is_dir()
-            and not (base / f"{folder.name}.lock").exists()
-            and folder.stat().st_mtime < cutoff
-        ):
-            shutil.rmtree(folder, ignore_errors=True)
-            removed += 1
-    return removed
+        shutil.rmtree(staging_dir, ignore_errors=True)
 
 
 def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ingested | None:
@@ -912,15 +793,14 @@ def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ing
 def _insert(
     session: Session,
     storage: LocalStorage,
-    env_id: str,
+    env: Environment,
     staging: _Staging,
     checked: _Checked,
     idempotency_key: str | None,
     digest: str,
 ) -> Ingested:
     # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
-    session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
-    env = environments.get(session, env_id)  # 404 if it went while the files were checked
+    session.execute(select(Environment.id).where(Environment.id == env.id).with_for_update())
     snapshot_id = new_id()
     prefix = f"snapshots/{snapshot_id}"
     snap: Snapshot | None = None

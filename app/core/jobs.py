@@ -5,6 +5,9 @@ error, heartbeat and cancel intent; the Celery message only says "look at job X"
       │                  │ heartbeat stops: back to queued (attempts left) or failed
       └──cancel──▶ cancelled        cancel ──▶ cancel_requested, the worker stops at the next
                                                progress report
+    running ──requeue──▶ queued   (the worker hit a transient database error)
+
+A job that ends failed or cancelled takes its subject with it (:mod:`app.core.lifecycle`).
 
 ``attempts`` is a fencing token: every write of a running job names the attempt that
 claimed it, so a zombie worker whose job was taken over can never overwrite the result.
@@ -12,17 +15,21 @@ claimed it, so a zombie worker whose job was taken over can never overwrite the 
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Callable
 from datetime import UTC, datetime, timedelta
 from typing import Any
 
 from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
-from app.core import events, queue
-from app.core.enums import EventType, JobKind, JobState
+from app.core import lifecycle, queue
+from app.core.enums import JobKind, JobState
 from app.core.errors import Conflict, NotFound
 from app.core.models import Job, utcnow
 from app.core.settings import Settings
+
+log = logging.getLogger(__name__)
 
 
 def create(
@@ -133,6 +140,29 @@ def finish(
     return job
 
 
+def requeue(session: Session, job_id: str, attempt: int) -> bool:
+    """Give a running attempt's job back to the queue and send it again after commit (the
+    worker could not finish it for a reason that is not the job's: a transient database
+    error); False when this attempt no longer owns it."""
+    now = utcnow()
+    updated = session.execute(
+        update(Job)
+        .where(*_owned(job_id, attempt))
+        .values(
+            state=JobState.queued,
+            stage="requeued",
+            worker=None,
+            enqueued_at=now,
+            sends=Job.sends + 1,
+        )
+    )
+    if updated.rowcount != 1:  # type: ignore[attr-defined]
+        return False
+    task_name = session.scalar(select(Job.task_name).where(Job.id == job_id))
+    queue.enqueue(session, str(task_name), job_id=job_id)
+    return True
+
+
 def fail_unclaimed(session: Session, job_id: str, code: str, detail: str) -> Job | None:
     """Fail a job that no worker could even start (its task crashed before claiming it);
     returns it, or None when it was not queued."""
@@ -148,36 +178,21 @@ def fail_unclaimed(session: Session, job_id: str, code: str, detail: str) -> Job
     return job
 
 
-def record_failed(session: Session, job: Job) -> None:
-    """The ``job.failed`` event, in the transaction that fails the job."""
-    events.record(
-        session,
-        EventType.job_failed,
-        environment_id=job.environment_id,
-        subject=f"jobs/{job.id}",
-        data={
-            "job": job.id,
-            "kind": str(job.kind),
-            "error": {"code": job.error_code, "detail": job.error_detail},
-            "snapshot": job.snapshot_id,
-            "comparison": job.comparison_id,
-            "object": job.object_id,
-        },
-    )
-
-
 def cancel(session: Session, job_id: str) -> Job:
-    """Cancel now when queued; ask the worker to stop when running; 409 when already final."""
+    """Cancel now when queued (its subject is cancelled too, with a ``job.cancelled``
+    event); ask the worker to stop when running; 409 when already final."""
     job = session.get(Job, job_id, with_for_update=True)
     if job is None:
         raise NotFound(f"job {job_id} not found")
     if JobState(job.state).is_final:
         raise Conflict(f"job {job_id} is already {job.state}", code="JobFinished")
+    job.cancel_requested = True
     if job.state == JobState.queued:
         job.state = JobState.cancelled
         job.finished_at = utcnow()
         job.error_code, job.error_detail = "Cancelled", "cancelled while queued"
-    job.cancel_requested = True
+        session.flush()
+        lifecycle.settle(session, job)
     session.flush()
     return job
 
@@ -188,12 +203,15 @@ def sweep(session: Session, settings: Settings, now: datetime | None = None) -> 
     - queued jobs whose message may be lost (last sent long ago) are sent again, with the
       wait doubling at each send (duplicates are harmless: claim is conditional);
     - running jobs whose heartbeat stopped go back to the queue while attempts remain,
-      otherwise they fail with ``WorkerLost``.
-    Returns counts for logging. Jobs it fails are returned in ``session.info['failed_jobs']``
-    so the caller can emit events in the same transaction.
+      otherwise they fail with ``WorkerLost``; those whose cancel was asked end cancelled.
+      A job that ends takes its subject with it (:func:`app.core.lifecycle.settle`).
+
+    Each job is handled in its own savepoint: one that cannot be handled is logged, left as
+    it was (the next sweep tries again) and counted in ``errors``; the others go on.
+    Returns counts for logging.
     """
     now = now or utcnow()
-    counts = {"resent": 0, "requeued": 0, "failed": 0}
+    counts = {"resent": 0, "requeued": 0, "failed": 0, "cancelled": 0, "errors": 0}
     queued = session.scalars(
         select(Job).where(Job.state == JobState.queued).with_for_update(skip_locked=True)
     ).all()
@@ -201,37 +219,64 @@ def sweep(session: Session, settings: Settings, now: datetime | None = None) -> 
         wait = min(settings.requeue_after_s * 2 ** max(job.sends - 1, 0), 3600.0)
         last = _aware(job.enqueued_at or job.created_at)
         if now - last >= timedelta(seconds=wait):
-            job.enqueued_at, job.sends = now, job.sends + 1
-            queue.enqueue(session, job.task_name, job_id=job.id)
-            counts["resent"] += 1
+            _each(session, job, counts, lambda job: _resend(session, job, now))
     stale_before = now - timedelta(seconds=settings.heartbeat_timeout_s)
     running = session.scalars(
         select(Job).where(Job.state == JobState.running).with_for_update(skip_locked=True)
     ).all()
-    failed: list[Job] = session.info.setdefault("failed_jobs", [])
     for job in running:
         heartbeat = _aware(job.heartbeat_at or job.started_at or job.created_at)
-        if heartbeat >= stale_before:
-            continue
-        if job.cancel_requested:
-            job.state, job.finished_at = JobState.cancelled, now
-            job.error_code, job.error_detail = "Cancelled", "worker stopped after cancel"
-        elif job.attempts < settings.max_job_attempts:
-            job.state, job.stage, job.worker = JobState.queued, "requeued", None
-            job.enqueued_at, job.sends = now, job.sends + 1
-            queue.enqueue(session, job.task_name, job_id=job.id)
-            counts["requeued"] += 1
-        else:
-            job.state, job.finished_at = JobState.failed, now
-            job.error_code = "WorkerLost"
-            job.error_detail = (
-                f"no heartbeat for {settings.heartbeat_timeout_s:.0f} s after "
-                f"{job.attempts} attempts; the worker died or hung"
-            )
-            failed.append(job)
-            counts["failed"] += 1
+        if heartbeat < stale_before:
+            _each(session, job, counts, lambda job: _recover(session, job, settings, now))
     session.flush()
     return counts
+
+
+def _each(session: Session, job: Job, counts: dict[str, int], handle: Callable[[Job], str]) -> None:
+    """Run ``handle(job)`` in a savepoint; count its outcome, or log its error and go on."""
+    job_id = job.id
+    try:
+        with session.begin_nested():
+            outcome: str = handle(job)
+    except Exception as exc:
+        if lifecycle.connection_lost(exc):  # the whole transaction is gone: nothing to go on
+            raise
+        log.exception("sweep: job %s could not be handled; left as it was", job_id)
+        counts["errors"] += 1
+        return
+    counts[outcome] += 1
+    if outcome in ("resent", "requeued"):  # sent only once its savepoint stands
+        queue.enqueue(session, job.task_name, job_id=job.id)
+
+
+def _resend(session: Session, job: Job, now: datetime) -> str:
+    job.enqueued_at, job.sends = now, job.sends + 1
+    session.flush()
+    return "resent"
+
+
+def _recover(session: Session, job: Job, settings: Settings, now: datetime) -> str:
+    """A running job whose worker stopped beating: cancel, requeue or fail it."""
+    if job.cancel_requested:
+        job.state, job.finished_at = JobState.cancelled, now
+        job.error_code, job.error_detail = "Cancelled", "worker stopped after cancel"
+        outcome = "cancelled"
+    elif job.attempts < settings.max_job_attempts:
+        job.state, job.stage, job.worker = JobState.queued, "requeued", None
+        job.enqueued_at, job.sends = now, job.sends + 1
+        session.flush()
+        return "requeued"
+    else:
+        job.state, job.finished_at = JobState.failed, now
+        job.error_code = "WorkerLost"
+        job.error_detail = (
+            f"no heartbeat for {settings.heartbeat_timeout_s:.0f} s after "
+            f"{job.attempts} attempts; the worker died or hung"
+        )
+        outcome = "failed"
+    session.flush()
+    lifecycle.settle(session, job)
+    return outcome
 
 
 def _aware(value: datetime) -> datetime:

@@ -52,6 +52,9 @@ class Settings(BaseSettings):
     requeue_after_s: float = 120.0
     sweep_interval_s: float = 30.0
     progress_interval_s: float = 2.0
+    # A worker retries a database write that failed on a lock or a lost connection (a
+    # PostgreSQL restart) for this long; past it the job is left to the sweeper to requeue.
+    db_retry_s: float = 120.0
     # GET /v1/jobs/{id} may answer from a per-process cache this young (0 turns it off)
     job_poll_cache_s: float = 0.5
     task_time_limit_s: int = 3 * 3600

@@ -74,7 +74,7 @@ def test_embedded_serve_end_to_end(
     job = poll_job(client, job_id, 120)
     assert job["state"] == "cancelled", job
     snap2 = client.get(f"/v1/snapshots/{second.json()['snapshot']['id']}").json()
-    assert snap2["state"] in {"cancelled", "uploaded"}
+    assert snap2["state"] == "cancelled", snap2  # queued or running, the snapshot ends too
     assert client.post(f"/v1/jobs/{job_id}/cancel").status_code == 409
 
     history = client.get(f"/v1/environments/{env_id}/snapshots").json()

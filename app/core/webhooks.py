@@ -31,6 +31,7 @@ after its ``whsec_`` prefix. :func:`verify_signature` is the receiver's side.
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import hmac
 import ipaddress
@@ -39,14 +40,17 @@ import logging
 import random
 import secrets
 import socket
+import ssl
+import threading
 import time
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import UTC, datetime, timedelta
 from functools import lru_cache
 from typing import Any
 from urllib.parse import urlsplit
 
+import httpcore
 import httpx
 from sqlalchemy import Select, and_, exists, func, or_, select, update
 from sqlalchemy.orm import Session, aliased
@@ -77,6 +81,10 @@ CONTENT_TYPE = "application/cloudevents+json; charset=utf-8"
 # A deliver message that has not led to a claim after this long is taken as lost and sent
 # again by the dispatcher (duplicates are harmless: the claim is conditional).
 REDISPATCH_AFTER_S = 60.0
+# A claim's lease outlasts the attempt's deadline by this much (the watchdog's grace, the
+# claim and record transactions); an attempt that could not finish inside it is not started.
+LEASE_MARGIN_S = 30.0
+ABORT_GRACE_S = 0.5
 IpAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 Network = ipaddress.IPv4Network | ipaddress.IPv6Network
 
@@ -108,12 +116,17 @@ def sign(secret: str, msg_id: str, timestamp: int, body: bytes) -> str:
     return "v1," + base64.b64encode(digest).decode()
 
 
-def signed_headers(secret: str, msg_id: str, body: bytes, timestamp: int) -> dict[str, str]:
-    """The three Standard Webhooks headers for one attempt."""
+def signed_headers(
+    secret: str | Sequence[str], msg_id: str, body: bytes, timestamp: int
+) -> dict[str, str]:
+    """The three Standard Webhooks headers for one attempt. With several secrets (newest
+    first: during a rotation's overlap) ``webhook-signature`` carries one signature per
+    secret, space-separated, so a receiver holding either one can verify."""
+    keys = [secret] if isinstance(secret, str) else list(secret)
     return {
         "webhook-id": msg_id,
         "webhook-timestamp": str(timestamp),
-        "webhook-signature": sign(secret, msg_id, timestamp, body),
+        "webhook-signature": " ".join(sign(k, msg_id, timestamp, body) for k in keys),
     }
 
 
@@ -179,10 +192,20 @@ def _resolve(host: str, port: int) -> list[IpAddress]:
     return [ipaddress.ip_address(str(info[4][0]).split("%", 1)[0]) for info in infos]
 
 
-def check_target(url: str, networks: Sequence[Network]) -> None:
-    """Refuse (InvalidInput, 422) a URL that is not http(s), or whose host is or resolves to a
-    non-public address (loopback, RFC 1918, link-local, unique-local, ...) outside
-    ``networks``."""
+@dataclass(frozen=True)
+class Target:
+    """A webhook URL's host resolved once, every address checked: the only addresses an
+    attempt may connect to (a second lookup could answer differently: DNS rebinding)."""
+
+    host: str
+    port: int
+    addresses: tuple[IpAddress, ...]
+
+
+def resolve_target(url: str, networks: Sequence[Network]) -> Target:
+    """Resolve ``url``'s host once and check every address it has; refuse (InvalidInput,
+    422) a URL that is not http(s), or whose host is or resolves to a non-public address
+    (loopback, RFC 1918, link-local, unique-local, ...) outside ``networks``."""
     try:
         parts = urlsplit(url)
         port = parts.port or (443 if parts.scheme == "https" else 80)
@@ -192,7 +215,8 @@ def check_target(url: str, networks: Sequence[Network]) -> None:
         raise InvalidInput("url: only http and https URLs can receive webhooks")
     if not parts.hostname:
         raise InvalidInput("url: the URL has no host")
-    for ip in _resolve(parts.hostname, port):
+    addresses = _resolve(parts.hostname, port)
+    for ip in addresses:
         if _is_public(ip) or any(ip in net for net in networks):
             continue
         raise InvalidInput(
@@ -200,6 +224,14 @@ def check_target(url: str, networks: Sequence[Network]) -> None:
             "TWINDELTA_WEBHOOK_ALLOWED_NETWORKS",
             code="WebhookTargetRefused",
         )
+    if not addresses:
+        raise InvalidInput(f"url: host {parts.hostname!r} has no address")
+    return Target(parts.hostname, port, tuple(dict.fromkeys(addresses)))
+
+
+def check_target(url: str, networks: Sequence[Network]) -> None:
+    """:func:`resolve_target` for its refusals only (when a subscription is made)."""
+    resolve_target(url, networks)
 
 
 # --- subscriptions --------------------------------------------------------------------------
@@ -379,9 +411,10 @@ class Claim:
     attempt: int
     run_attempt: int
     url: str
-    secret: str
+    secrets: tuple[str, ...] = field(repr=False)  # the signing secrets, newest first
     event_id: str
     body: bytes
+    lease_until: datetime
 
 
 @dataclass(frozen=True)
@@ -396,8 +429,10 @@ class Outcome:
 
 
 def lease_s(settings: Settings) -> float:
-    """How long a claimed attempt may take before another worker may take the delivery."""
-    return settings.webhook_timeout_s * 3 + 30.0
+    """How long a claim holds the delivery: the attempt's deadline (``webhook_timeout_s``)
+    plus a margin for the watchdog, the claim and record transactions. :func:`send` never
+    runs past the lease less that margin, so a lease never expires under a live attempt."""
+    return settings.webhook_timeout_s + LEASE_MARGIN_S
 
 
 def cloudevent(event: Event) -> dict[str, Any]:
@@ -494,44 +529,218 @@ def claim(
         )
         return None
     body = json.dumps(cloudevent(event), separators=(",", ":"), ensure_ascii=False).encode()
-    return Claim(claimed_id, attempt, run_attempt, sub.url, sub.secret, event.id, body)
+    lease_until = now + timedelta(seconds=lease_s(settings))
+    return Claim(
+        claimed_id, attempt, run_attempt, sub.url, (sub.secret,), event.id, body, lease_until
+    )
 
 
-@lru_cache(maxsize=4)
-def _http_client(timeout_s: float) -> httpx.Client:
-    """One pooled client per process (it is thread-safe); building one costs ~50 ms."""
-    return httpx.Client(timeout=timeout_s, follow_redirects=False)
+@lru_cache(maxsize=1)
+def _ssl_context() -> ssl.SSLContext:
+    """The verifying TLS context (certifi's CAs), built once: it costs ~50 ms."""
+    return httpx.create_ssl_context()
+
+
+class _Deadline:
+    """The monotonic instant by which one attempt ends, whatever the receiver does."""
+
+    def __init__(self, at: float) -> None:
+        self.at = at
+
+    def left(self) -> float:
+        return self.at - time.monotonic()
+
+    def clip(self, timeout: float | None, error: type[Exception]) -> float:
+        """``timeout`` cut to what is left; ``error`` once nothing is."""
+        left = self.left()
+        if left <= 0:
+            raise error("the attempt's deadline passed")
+        return left if timeout is None else min(timeout, left)
+
+
+class _PinnedStream(httpcore.NetworkStream):
+    """A connection whose every read, write and TLS handshake ends by the deadline."""
+
+    def __init__(self, inner: httpcore.NetworkStream, backend: _PinnedBackend) -> None:
+        self._inner, self._backend, self._deadline = inner, backend, backend.deadline
+
+    def read(self, max_bytes: int, timeout: float | None = None) -> bytes:
+        return self._inner.read(max_bytes, self._deadline.clip(timeout, httpcore.ReadTimeout))
+
+    def write(self, buffer: bytes, timeout: float | None = None) -> None:
+        self._inner.write(buffer, self._deadline.clip(timeout, httpcore.WriteTimeout))
+
+    def close(self) -> None:
+        self._inner.close()
+
+    def start_tls(
+        self,
+        ssl_context: ssl.SSLContext,
+        server_hostname: str | None = None,
+        timeout: float | None = None,
+    ) -> httpcore.NetworkStream:
+        clipped = self._deadline.clip(timeout, httpcore.ConnectTimeout)
+        tls = self._inner.start_tls(ssl_context, server_hostname, clipped)
+        return self._backend.track(tls)
+
+    def get_extra_info(self, info: str) -> Any:
+        return self._inner.get_extra_info(info)
+
+
+class _PinnedBackend(httpcore.NetworkBackend):
+    """Connects only to the addresses that passed the check: the host name is never looked
+    up again, so a DNS answer that changes after the check cannot send the attempt
+    elsewhere. TLS still gets the URL's host name (httpcore passes it to ``start_tls``), so
+    SNI and certificate verification are those of the name, and the Host header is the
+    URL's. Every socket operation ends by the attempt's deadline, and :meth:`abort` shuts
+    the sockets down (the watchdog's backstop for a TLS handshake that trickles in)."""
+
+    def __init__(self, addresses: Sequence[IpAddress], deadline: _Deadline) -> None:
+        self._addresses, self.deadline = list(addresses), deadline
+        self._inner = httpcore.SyncBackend()
+        self._streams: list[httpcore.NetworkStream] = []
+        self._lock = threading.Lock()
+
+    def connect_tcp(
+        self,
+        host: str,
+        port: int,
+        timeout: float | None = None,
+        local_address: str | None = None,
+        socket_options: Iterable[Any] | None = None,
+    ) -> httpcore.NetworkStream:
+        error: Exception = httpcore.ConnectError(f"{host} has no checked address")
+        for ip in self._addresses:
+            try:
+                stream = self._inner.connect_tcp(
+                    str(ip),
+                    port,
+                    timeout=self.deadline.clip(timeout, httpcore.ConnectTimeout),
+                    local_address=local_address,
+                    socket_options=socket_options,
+                )
+            except httpcore.ConnectError as exc:  # try the next address
+                error = exc
+                continue
+            return self.track(stream)
+        raise error
+
+    def track(self, stream: httpcore.NetworkStream) -> _PinnedStream:
+        """Wrap a new stream (TCP, or TLS over it: a new socket object) for :meth:`abort`."""
+        with self._lock:
+            self._streams.append(stream)
+        return _PinnedStream(stream, self)
+
+    def connect_unix_socket(
+        self,
+        path: str,
+        timeout: float | None = None,
+        socket_options: Iterable[Any] | None = None,
+    ) -> httpcore.NetworkStream:
+        raise httpcore.ConnectError("webhooks are not sent to unix sockets")
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(seconds)
+
+    def abort(self) -> None:
+        with self._lock:
+            streams = list(self._streams)
+        for stream in streams:
+            with contextlib.suppress(AttributeError, OSError):  # closed, or detached by TLS
+                stream.get_extra_info("socket").shutdown(socket.SHUT_RDWR)
+
+
+class _Refused(Exception):
+    pass
+
+
+def _resolve_by(url: str, networks: Sequence[Network], deadline: _Deadline) -> Target:
+    """:func:`resolve_target` within the deadline (``getaddrinfo`` has no timeout of its
+    own: it runs in a helper thread that is left to finish on its own if it is late)."""
+    result: list[Target | InvalidInput] = []
+    done = threading.Event()
+
+    def run() -> None:
+        try:
+            result.append(resolve_target(url, networks))
+        except InvalidInput as exc:
+            result.append(exc)
+        finally:
+            done.set()
+
+    threading.Thread(target=run, name="webhook-resolve", daemon=True).start()
+    if not done.wait(max(deadline.left(), 0.0)):
+        raise httpcore.ConnectTimeout("resolving the host took past the deadline")
+    if isinstance(result[0], InvalidInput):
+        raise _Refused(result[0].detail)
+    return result[0]
+
+
+def attempt_budget_s(claim: Claim, settings: Settings) -> float:
+    """Seconds one attempt may take: ``webhook_timeout_s``, and never past its lease less
+    the margin (so no other worker can take the delivery while it is still sending)."""
+    lease_left = (claim.lease_until - utcnow()).total_seconds() - LEASE_MARGIN_S
+    return max(min(settings.webhook_timeout_s, lease_left), 0.0)
 
 
 def send(claim: Claim, settings: Settings) -> Outcome:
-    """POST the signed event; never raises. Any 2xx is success. The target is checked again
-    first (DNS can change since the subscription was made); redirects are not followed."""
-    try:
-        check_target(claim.url, allowed_networks(settings))
-    except InvalidInput as exc:
-        return Outcome(False, None, None, None, f"refused: {exc.detail}")
-    headers = signed_headers(claim.secret, claim.event_id, claim.body, int(time.time()))
-    headers.update({"content-type": CONTENT_TYPE, "user-agent": USER_AGENT})
+    """POST the signed event; never raises. Any 2xx is success; redirects are not followed.
+
+    One overall deadline (``webhook_timeout_s``) covers the lookup, connect, TLS, request,
+    response headers and the 1 KB excerpt: a receiver that trickles bytes cannot hold the
+    attempt past it. The host is resolved once and every address checked again (DNS can
+    change since the subscription was made); the connection goes to a checked address, never
+    through a proxy from the environment."""
+    budget = attempt_budget_s(claim, settings)
     start = time.perf_counter()
+    deadline = _Deadline(time.monotonic() + budget)
+    backend: _PinnedBackend | None = None
+    watchdog: threading.Timer | None = None
     try:
-        client = _http_client(settings.webhook_timeout_s)
-        with client.stream("POST", claim.url, content=claim.body, headers=headers) as response:
+        target = _resolve_by(claim.url, allowed_networks(settings), deadline)
+        headers = signed_headers(claim.secrets, claim.event_id, claim.body, int(time.time()))
+        headers.update({"content-type": CONTENT_TYPE, "user-agent": USER_AGENT})
+        backend = _PinnedBackend(target.addresses, deadline)
+        watchdog = threading.Timer(max(deadline.left(), 0.0) + ABORT_GRACE_S, backend.abort)
+        watchdog.daemon = True
+        watchdog.start()
+        extensions = {"timeout": dict.fromkeys(("connect", "read", "write", "pool"), budget)}
+        request_headers = list(headers.items())
+        with (
+            httpcore.ConnectionPool(
+                ssl_context=_ssl_context(), network_backend=backend, max_connections=1
+            ) as pool,
+            pool.stream(
+                "POST",
+                claim.url,
+                headers=request_headers,
+                content=claim.body,
+                extensions=extensions,
+            ) as response,
+        ):
             latency = (time.perf_counter() - start) * 1000.0
             excerpt = bytearray()
-            for chunk in response.iter_bytes():
-                excerpt += chunk
-                if len(excerpt) >= EXCERPT_BYTES:
-                    break
+            try:
+                for chunk in response.iter_stream():
+                    excerpt += chunk
+                    if len(excerpt) >= EXCERPT_BYTES:
+                        break
+            except (httpcore.TimeoutException, httpcore.NetworkError):
+                pass  # the status decides; the excerpt is what came by the deadline
             text = bytes(excerpt[:EXCERPT_BYTES]).decode("utf-8", errors="replace")
-            ok = 200 <= response.status_code < 300
-            error = None if ok else f"HTTP {response.status_code}"
-            return Outcome(ok, response.status_code, latency, text, error)
-    except httpx.TimeoutException as exc:
-        error = f"timeout after {settings.webhook_timeout_s:g} s ({type(exc).__name__})"
-    except httpx.HTTPError as exc:
-        error = f"{type(exc).__name__}: {exc}"
+            ok = 200 <= response.status < 300
+            error = None if ok else f"HTTP {response.status}"
+            return Outcome(ok, response.status, latency, text, error)
+    except _Refused as exc:
+        return Outcome(False, None, None, None, f"refused: {exc}")
     except Exception as exc:  # a delivery must always be recorded
-        error = f"{type(exc).__name__}: {exc}"
+        if deadline.left() <= 0:
+            error = f"deadline: no answer within {budget:g} s ({type(exc).__name__})"
+        else:
+            error = f"{type(exc).__name__}: {exc}"
+    finally:
+        if watchdog is not None:
+            watchdog.cancel()
     return Outcome(False, None, (time.perf_counter() - start) * 1000.0, None, error[:2000])
 
 

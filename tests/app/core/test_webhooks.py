@@ -12,6 +12,8 @@ import base64
 import ipaddress
 import itertools
 import json
+import select as io_select
+import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -57,6 +59,7 @@ class Receiver:
     every answer on ``path`` until the returned event is set."""
 
     port: int = 0
+    host: str = "127.0.0.1"
     hits: list[Hit] = field(default_factory=list)
     plans: dict[str, list[int]] = field(default_factory=dict)
     delays: dict[str, list[float]] = field(default_factory=dict)
@@ -98,7 +101,7 @@ class Receiver:
                 pass
 
         ThreadingHTTPServer.allow_reuse_address = True
-        self.server = ThreadingHTTPServer(("127.0.0.1", self.port), Handler)
+        self.server = ThreadingHTTPServer((self.host, self.port), Handler)
         self.server.daemon_threads = True
         self.port = self.server.server_address[1]
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
@@ -113,7 +116,7 @@ class Receiver:
             self.server = None
 
     def url(self, path: str = "/hook") -> str:
-        return f"http://127.0.0.1:{self.port}{path}"
+        return f"http://{self.host}:{self.port}{path}"
 
     def plan(self, path: str, statuses: list[int], delays: list[float] | None = None) -> None:
         with self.lock:
@@ -134,6 +137,107 @@ def receiver() -> Iterator[Receiver]:
     r = Receiver().start()
     yield r
     r.stop()
+
+
+@dataclass
+class DripConnection:
+    webhook_id: str | None
+    opened_at: float
+    closed_at: float | None = None  # when the client hung up (or the drip ended)
+
+
+@dataclass
+class DripServer:
+    """A receiver that reads the request, then answers a valid 200 one byte every
+    ``interval_s`` for at most ``for_s`` seconds: every single read the client makes gets a
+    byte well within any per-read timeout. Notes when each connection opened and when the
+    client hung up (seen at once: the server waits for the next byte with select)."""
+
+    interval_s: float = 1.5
+    for_s: float = 30.0
+    connections: list[DripConnection] = field(default_factory=list)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    stopped: threading.Event = field(default_factory=threading.Event)
+    listener: socket.socket | None = None
+    port: int = 0
+
+    def start(self) -> DripServer:
+        self.listener = socket.create_server(("127.0.0.1", 0), backlog=32)
+        self.port = self.listener.getsockname()[1]
+        threading.Thread(target=self._accept, daemon=True).start()
+        return self
+
+    def url(self, path: str = "/drip") -> str:
+        return f"http://127.0.0.1:{self.port}{path}"
+
+    def _accept(self) -> None:
+        assert self.listener is not None
+        while not self.stopped.is_set():
+            try:
+                conn, _ = self.listener.accept()
+            except OSError:
+                return
+            threading.Thread(target=self._drip, args=(conn,), daemon=True).start()
+
+    def _drip(self, conn: socket.socket) -> None:
+        record = DripConnection(None, time.monotonic())
+        with self.lock:
+            self.connections.append(record)
+        try:
+            request = b""
+            while b"\r\n\r\n" not in request:
+                chunk = conn.recv(65536)
+                if not chunk:
+                    return
+                request += chunk
+            raw_head, body = request.split(b"\r\n\r\n", 1)
+            length = 0
+            for line in raw_head.decode("latin-1").lower().split("\r\n"):
+                name, _, value = line.partition(":")
+                if name == "webhook-id":
+                    record.webhook_id = value.strip()
+                elif name == "content-length":
+                    length = int(value)
+            while len(body) < length:
+                chunk = conn.recv(65536)
+                if not chunk:
+                    return
+                body += chunk
+            answer = b"HTTP/1.1 200 OK\r\ncontent-length: 2\r\nconnection: close\r\n\r\nok"
+            end = record.opened_at + self.for_s
+            for byte in answer:
+                readable, _, _ = io_select.select([conn], [], [], self.interval_s)
+                if readable and not conn.recv(65536):
+                    return  # the client hung up
+                if self.stopped.is_set() or time.monotonic() > end:
+                    return
+                conn.sendall(bytes([byte]))
+        except OSError:
+            return
+        finally:
+            record.closed_at = time.monotonic()
+            conn.close()
+
+    def open_now(self) -> list[DripConnection]:
+        with self.lock:
+            return [c for c in self.connections if c.closed_at is None]
+
+    def stop(self) -> None:
+        self.stopped.set()
+        if self.listener is not None:
+            self.listener.close()
+
+
+def overlapping(connections: list[DripConnection]) -> list[tuple[float, float]]:
+    """Pairs of connections carrying the same event at the same time."""
+    out = []
+    for a, b in itertools.combinations(connections, 2):
+        if a.webhook_id is None or a.webhook_id != b.webhook_id:
+            continue
+        a_end, b_end = a.closed_at or time.monotonic(), b.closed_at or time.monotonic()
+        if a.opened_at < b_end and b.opened_at < a_end:
+            out.append((a.opened_at, b.opened_at))
+    return out
 
 
 @pytest.fixture
@@ -602,3 +706,109 @@ def test_deactivate_ends_pending_deliveries(
     assert drive(session_factory, sent_tasks) == ["skipped"]
     record(session_factory, env, 2)
     assert len(deliveries(session_factory)) == 1  # nothing new for an inactive subscription
+
+
+# --- hostile receivers and networks ----------------------------------------------------------
+
+
+def test_drip_receiver_attempt_ends_at_its_overall_deadline(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One byte every 1.5 s never trips a per-read timeout; the attempt still ends at
+    ``webhook_timeout_s`` (2 s here), is logged as a timeout and is retried later."""
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_TIMEOUT_S", "2")
+    get_settings.cache_clear()
+    drip = DripServer(interval_s=1.5, for_s=12.0).start()
+    try:
+        env = make_env(session_factory)
+        subscribe(session_factory, drip.url())
+        record(session_factory, env)
+        [d] = deliveries(session_factory)
+        start = time.monotonic()
+        assert deliver_once(d.id) == "retrying"
+        elapsed = time.monotonic() - start
+        assert elapsed < 2.0 + 0.8, f"the attempt took {elapsed:.1f} s"
+        [attempt] = attempts_of(session_factory, d.id)
+        assert attempt.status_code is None and "deadline" in (attempt.error or ""), attempt.error
+        [conn] = drip.connections
+        deadline = time.monotonic() + 2
+        while conn.closed_at is None and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert conn.closed_at is not None and conn.closed_at - conn.opened_at < 2.8
+        [d] = deliveries(session_factory)
+        assert d.state == DeliveryState.pending and d.locked_until is None
+    finally:
+        drip.stop()
+
+
+def test_lease_outlives_the_attempt_deadline(webhook_settings: None) -> None:
+    """A claimed attempt always ends (its deadline) well before its lease, so no other worker
+    can take the delivery while the attempt is still talking to the receiver."""
+    settings = get_settings()
+    for timeout in (0.5, 3.0, 10.0, 120.0):
+        s = settings.model_copy(update={"webhook_timeout_s": timeout})
+        assert webhooks.lease_s(s) >= timeout + webhooks.LEASE_MARGIN_S
+
+
+def test_delivery_connects_to_the_checked_address_not_a_second_lookup(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """DNS rebinding: the name answers 127.0.0.1 (allowed) while it is checked and then
+    127.0.0.2 (not allowed: an internal service listens there). The attempt goes to the
+    address that passed the check and sends the original Host header."""
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_ALLOWED_NETWORKS", '["127.0.0.1/32"]')
+    get_settings.cache_clear()
+    port = free_port()
+    outside = Receiver(port=port, host="127.0.0.1").start()
+    inside = Receiver(port=port, host="127.0.0.2").start()
+    real_getaddrinfo = socket.getaddrinfo
+    lookups: list[str] = []
+
+    def rebinding(host: Any, *args: Any, **kwargs: Any) -> Any:
+        if host == "hooks.rebind.test":
+            lookups.append(host)  # the check at subscribe time and at delivery, then rebound
+            host = "127.0.0.1" if len(lookups) <= 2 else "127.0.0.2"
+        return real_getaddrinfo(host, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "getaddrinfo", rebinding)
+    try:
+        env = make_env(session_factory)
+        _, secret = subscribe(session_factory, f"http://hooks.rebind.test:{port}/hook")
+        record(session_factory, env)
+        assert drive(session_factory, sent_tasks) == ["succeeded"]
+        assert inside.on("/hook") == []
+        [hit] = outside.on("/hook")
+        assert hit.headers["host"] == f"hooks.rebind.test:{port}"
+        webhooks.verify_signature(secret, hit.headers, hit.body)
+        assert len(lookups) == 2  # one at subscribe time, one per attempt
+    finally:
+        outside.stop()
+        inside.stop()
+
+
+def test_proxy_environment_variables_are_ignored(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A proxy named in the environment (here a dead one) is not used: the attempt goes
+    straight to the checked address (a proxy would also re-resolve the name itself)."""
+    dead = f"http://127.0.0.1:{free_port()}"
+    for name in ("HTTP_PROXY", "HTTPS_PROXY", "ALL_PROXY"):
+        monkeypatch.setenv(name, dead)
+        monkeypatch.setenv(name.lower(), dead)
+    for name in ("NO_PROXY", "no_proxy"):
+        monkeypatch.delenv(name, raising=False)
+    env = make_env(session_factory)
+    subscribe(session_factory, receiver.url())
+    record(session_factory, env)
+    assert drive(session_factory, sent_tasks) == ["succeeded"]
+    assert len(receiver.on("/hook")) == 1

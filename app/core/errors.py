@@ -50,3 +50,10 @@ class PayloadTooLarge(DomainError):
 class UnsupportedMedia(DomainError):
     status_code = 415
     code = "UnsupportedMediaType"
+
+
+class InsufficientStorage(DomainError):
+    """507: the server's storage is full; nothing of the request was kept, retry later."""
+
+    status_code = 507
+    code = "InsufficientStorage"

@@ -18,6 +18,8 @@ SHA-256) returns the first snapshot and job; with other files it is a 409.
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import math
 import os
@@ -26,10 +28,13 @@ import shutil
 import stat
 import struct
 import tarfile
+import time
+import uuid
 import zipfile
 import zlib
-from collections.abc import Collection, Iterator, Sequence
+from collections.abc import Callable, Collection, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
@@ -37,13 +42,14 @@ from typing import Any, BinaryIO
 from PIL import Image, UnidentifiedImageError
 from sqlalchemy import func, select
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import environments, jobs, jsondoc, snapshots
 from app.core.enums import JobKind, SnapshotState
 from app.core.errors import (
     Conflict,
     DomainError,
+    InsufficientStorage,
     InvalidInput,
     PayloadTooLarge,
     UnsupportedMedia,
@@ -125,6 +131,8 @@ class _Staging:
     classes_sha256: str | None = None
     n_files: int = 0
     n_bytes: int = 0
+    # Called with the current file's bytes so far, per chunk: an archive's inflation check.
+    budget: Callable[[int], None] | None = None
 
     def digest(self) -> str:
         """SHA-256 over the sorted (stored name, content SHA-256) pairs: the same files give
@@ -154,13 +162,18 @@ class Ingested:
 # --- parsers shared by the upload and the worker's re-read ---------------------------------
 
 
-def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int]:
+def probe_image(
+    source: BinaryIO, where: str, max_pixels: int, max_decoded_bytes: int | None = None
+) -> tuple[int, int]:
     """Width and height of a JPEG or PNG after checking that it decodes.
 
-    The pixel count comes from the header (``Image.open`` reads nothing else) and is checked
-    before any decoding; JPEGs decode at 1/8 scale (``Image.draft``); PNGs are verified
-    (chunk CRCs) and their pixel stream inflated in pieces and counted, so memory stays
-    small whatever the size. ``ImageTooLarge`` (413) or ``InvalidImage`` (422).
+    The pixel count and the decoded size (width × height × channels × bytes per sample, at
+    least 3 bytes a pixel: readers decode to 8-bit colour) come from the header
+    (``Image.open`` reads nothing else) and are checked against ``max_pixels`` and
+    ``max_decoded_bytes`` before any decoding; JPEGs decode at 1/8 scale (``Image.draft``);
+    PNGs are verified (chunk CRCs) and their pixel stream inflated in pieces and counted, so
+    memory stays small whatever the size. ``ImageTooLarge`` (413) or ``InvalidImage`` (422);
+    details never show server paths.
     """
     try:
         with Image.open(source) as img:
@@ -169,6 +182,9 @@ def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int
             if fmt not in IMAGE_FORMATS:
                 raise _invalid("InvalidImage", f"{where}: not a JPEG or PNG image ({fmt})")
             _check_pixels(width, height, where, max_pixels)
+            if max_decoded_bytes is not None:
+                per_pixel = _png_pixel_bytes(source) if fmt == "PNG" else len(img.getbands())
+                _check_decoded(width, height, max(3, per_pixel), where, max_decoded_bytes)
             if fmt == "JPEG":
                 img.draft(img.mode, (max(1, width // 8), max(1, height // 8)))
                 img.load()
@@ -177,7 +193,7 @@ def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int
         if fmt == "PNG":
             _check_png_pixels(source, where)
     except Image.DecompressionBombError as exc:
-        raise _too_large("ImageTooLarge", f"{where}: {exc}") from exc
+        raise _too_large("ImageTooLarge", f"{where}: {_reason(exc)}") from exc
     except DomainError:
         raise
     except (
@@ -189,8 +205,46 @@ def probe_image(source: BinaryIO, where: str, max_pixels: int) -> tuple[int, int
         struct.error,
         zlib.error,
     ) as exc:
-        raise _invalid("InvalidImage", f"{where}: not a readable JPEG or PNG ({exc})") from exc
+        raise _invalid(
+            "InvalidImage", f"{where}: not a readable JPEG or PNG ({_reason(exc)})"
+        ) from exc
     return width, height
+
+
+# A file object's repr (``<_io.BufferedReader name='/srv/...'>``) or an absolute path.
+_SERVER_PATH = re.compile(
+    r"<_io\.\w+ name=(?:'[^']*'|\"[^\"]*\"|\S+?)>|(?<![\w.])/(?:[^\s/'\"<>:]+/)+[^\s/'\"<>:]*"
+)
+
+
+def _reason(exc: BaseException) -> str:
+    """An exception's message for a client: server paths removed (never show them)."""
+    text = _SERVER_PATH.sub("the file", str(exc)).strip()
+    return text or type(exc).__name__
+
+
+def _png_pixel_bytes(source: BinaryIO) -> int:
+    """Bytes a decoded pixel takes, from the PNG's IHDR (channels × bytes per sample;
+    palette images decode to RGBA)."""
+    at = source.tell()
+    source.seek(16)
+    head = source.read(10)
+    source.seek(at)
+    if len(head) < 10:
+        return 4
+    depth, color = head[8], head[9]
+    channels = 4 if color == 3 else _PNG_CHANNELS.get(color, 4)
+    return channels * (2 if depth > 8 else 1)
+
+
+def _check_decoded(width: int, height: int, per_pixel: int, where: str, limit: int) -> None:
+    decoded = width * height * per_pixel
+    if decoded > limit:
+        raise _too_large(
+            "ImageTooLarge",
+            f"{where}: {width}×{height} at {per_pixel} bytes a pixel decodes to {decoded} "
+            f"bytes, more than the limit of {limit}",
+        )
 
 
 _PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
@@ -491,20 +545,29 @@ def _stage_file(staging: _Staging, kind: str, name: str, where: str, source: Bin
     remaining = settings.max_upload_bytes - staging.n_bytes
     limit = min(settings.max_file_bytes, remaining)
     target = staging.root / kind / name if kind else staging.root / name
-    target.parent.mkdir(parents=True, exist_ok=True)
     digest = hashlib.sha256()
     size = 0
-    with target.open("wb") as out:
-        while chunk := source.read(1024 * 1024):
-            size += len(chunk)
-            if size > limit:
-                if limit == settings.max_file_bytes:
-                    detail = f"{where}: larger than {settings.max_file_bytes} bytes"
-                else:
-                    detail = f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
-                raise _too_large("PayloadTooLarge", detail)
-            digest.update(chunk)
-            out.write(chunk)
+    try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        with target.open("wb") as out:
+            while chunk := source.read(1024 * 1024):
+                size += len(chunk)
+                if size > limit:
+                    if limit == settings.max_file_bytes:
+                        detail = f"{where}: larger than {settings.max_file_bytes} bytes"
+                    else:
+                        detail = (
+                            f"{where}: the upload is larger than {settings.max_upload_bytes} bytes"
+                        )
+                    raise _too_large("PayloadTooLarge", detail)
+                if staging.budget is not None:
+                    staging.budget(size)
+                digest.update(chunk)
+                out.write(chunk)
+    except OSError as exc:
+        if _disk_full(exc):  # not the archive's fault: a clean 507, never "damaged"
+            raise _no_space(where) from exc
+        raise
     staging.n_bytes += size
     return _Staged(path=target, where=where, size=size, sha256=digest.hexdigest())
 
@@ -587,26 +650,69 @@ def _member_path(name: str) -> PurePosixPath | None:
     return path
 
 
+# Inflation allowed beyond ``max_archive_ratio`` × the compressed bytes: small archives of
+# text (labels, tar headers) compress far better than photos.
+ARCHIVE_SLACK_BYTES = 1024**2
+
+
+def _bomb(where: str, inflated: int, packed: int, ratio: float) -> PayloadTooLarge:
+    return _too_large(
+        "ArchiveBomb",
+        f"{where}: inflates to {inflated} bytes from {packed} compressed bytes, more than "
+        f"{ratio:g} times (max_archive_ratio)",
+    )
+
+
+def _too_many_members(where: str, limit: int) -> PayloadTooLarge:
+    return _too_large(
+        "TooManyFiles", f"{where}: more than {limit} archive members (folders count too)"
+    )
+
+
+def _zip_entries(source: BinaryIO) -> int | None:
+    """The member count the zip's end record declares, read before the central directory
+    is parsed into memory; None when there is no readable end record."""
+    try:
+        end = zipfile._EndRecData(source)  # type: ignore[attr-defined]
+    except (OSError, ValueError, struct.error):
+        return None
+    finally:
+        source.seek(0)
+    if not end:
+        return None
+    return int(end[zipfile._ECD_ENTRIES_TOTAL])  # type: ignore[attr-defined]
+
+
 def _stage_zip(staging: _Staging, source: BinaryIO, where: str) -> None:
+    settings = staging.settings
+    declared_entries = _zip_entries(source)
+    if declared_entries is not None and declared_entries > settings.max_archive_members:
+        raise _too_many_members(where, settings.max_archive_members)
     try:
         archive = zipfile.ZipFile(source)
     except (zipfile.BadZipFile, OSError, ValueError) as exc:
-        raise _invalid("InvalidArchive", f"{where}: not a readable zip ({exc})") from exc
+        raise _invalid("InvalidArchive", f"{where}: not a readable zip ({_reason(exc)})") from exc
     with archive:
         infos = archive.infolist()
+        if len(infos) > settings.max_archive_members:
+            raise _too_many_members(where, settings.max_archive_members)
         files = [i for i in infos if not i.is_dir()]
-        if len(files) > staging.settings.max_upload_files:
+        if len(files) > settings.max_upload_files:
             raise _too_large(
                 "TooManyFiles",
-                f"{where}: {len(files)} members, more than {staging.settings.max_upload_files}",
+                f"{where}: {len(files)} members, more than {settings.max_upload_files}",
             )
         declared = sum(i.file_size for i in files)
-        if declared > staging.settings.max_upload_bytes:
+        if declared > settings.max_upload_bytes:
             raise _too_large(
                 "PayloadTooLarge",
-                f"{where}: unpacks to {declared} bytes, more than "
-                f"{staging.settings.max_upload_bytes}",
+                f"{where}: unpacks to {declared} bytes, more than {settings.max_upload_bytes}",
             )
+        # A member never inflates past its declared size (zipfile stops there and checks
+        # the CRC), so the declared sizes bound what can be written: check them first.
+        packed = sum(i.compress_size for i in files)
+        if declared > settings.max_archive_ratio * packed + ARCHIVE_SLACK_BYTES:
+            raise _bomb(where, declared, packed, settings.max_archive_ratio)
         for info in infos:
             mode = info.external_attr >> 16
             if mode and stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
@@ -621,14 +727,43 @@ def _stage_zip(staging: _Staging, source: BinaryIO, where: str) -> None:
                     _add(staging, path.name, info.filename, member, None)  # type: ignore[arg-type]
             except (zipfile.BadZipFile, zlib.error, OSError, NotImplementedError) as exc:
                 raise _invalid(
-                    "InvalidArchive", f"{where}: member {info.filename!r} is damaged ({exc})"
+                    "InvalidArchive",
+                    f"{where}: member {info.filename!r} is damaged ({_reason(exc)})",
                 ) from exc
 
 
+class _CountingReader:
+    """Counts the bytes read from a stream: how much of a compressed archive was consumed."""
+
+    def __init__(self, raw: BinaryIO) -> None:
+        self.raw = raw
+        self.n = 0
+
+    def read(self, size: int = -1) -> bytes:
+        data = self.raw.read(size)
+        self.n += len(data)
+        return data
+
+
 def _stage_tar(staging: _Staging, source: BinaryIO, where: str) -> None:
+    settings = staging.settings
+    counted = _CountingReader(source)
+
+    def budget(current: int) -> None:
+        # Checked per chunk while extracting: stop at the limit, not after the bomb landed.
+        inflated = staging.n_bytes + current
+        if inflated > settings.max_archive_ratio * counted.n + ARCHIVE_SLACK_BYTES:
+            raise _bomb(where, inflated, counted.n, settings.max_archive_ratio)
+
+    staging.budget = budget
     try:
-        with tarfile.open(fileobj=source, mode="r|*") as archive:
-            for member in archive:
+        with tarfile.open(fileobj=counted, mode="r|*") as archive:  # type: ignore[call-overload]
+            for n_members, member in enumerate(archive, start=1):
+                # Every member counts (folders too), and none is kept: a stream of headers
+                # costs neither memory nor time without limit.
+                archive.members = []
+                if n_members > settings.max_archive_members:
+                    raise _too_many_members(where, settings.max_archive_members)
                 if not (member.isfile() or member.isdir()):
                     raise _unsafe(member.name, "not a regular file (link or device)")
                 path = _member_path(member.name)
@@ -638,9 +773,11 @@ def _stage_tar(staging: _Staging, source: BinaryIO, where: str) -> None:
                 if extracted is None:
                     raise _unsafe(member.name, "not a regular file")
                 with extracted:
-                    _add(staging, path.name, member.name, extracted, None)  # type: ignore[arg-type]
+                    _add(staging, path.name, member.name, extracted, None)
     except (tarfile.TarError, EOFError, zlib.error, OSError) as exc:
-        raise _invalid("InvalidArchive", f"{where}: not a readable tar ({exc})") from exc
+        raise _invalid("InvalidArchive", f"{where}: not a readable tar ({_reason(exc)})") from exc
+    finally:
+        staging.budget = None
 
 
 def _stage_archive(staging: _Staging, archive: UploadPart) -> None:
@@ -680,7 +817,9 @@ def _validate(staging: _Staging, classes: Sequence[str]) -> _Checked:
     pool = ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 1))
     try:
         probes = [
-            pool.submit(_probe_path, image, settings.max_image_pixels)
+            pool.submit(
+                _probe_path, image, settings.max_image_pixels, settings.max_image_decoded_bytes
+            )
             for image in staging.images.values()
         ]
         for probe in probes:
@@ -704,9 +843,9 @@ def _validate(staging: _Staging, classes: Sequence[str]) -> _Checked:
     return _Checked(n_detections=n_detections)
 
 
-def _probe_path(image: _Staged, max_pixels: int) -> tuple[int, int]:
+def _probe_path(image: _Staged, max_pixels: int, max_decoded: int) -> tuple[int, int]:
     with image.path.open("rb") as fh:
-        return probe_image(fh, image.where, max_pixels)
+        return probe_image(fh, image.where, max_pixels, max_decoded)
 
 
 # --- the upload -----------------------------------------------------------------------------
@@ -723,14 +862,24 @@ def create_snapshot(
     cameras: UploadPart | None = None,
     archive: UploadPart | None = None,
     idempotency_key: str | None = None,
+    lookup: sessionmaker[Session] | None = None,
 ) -> Ingested:
     """Validate and store an uploaded capture, insert its snapshot (state ``uploaded``, the
     environment's next ``seq``) and queue ``snapshot.process`` after commit.
 
     Give loose files (``images``, ``detections``, ``cameras``) or one ``archive``. Errors are
-    DomainErrors naming the file and line; nothing is stored when one is raised.
+    DomainErrors naming the file and line; nothing is stored when one is raised; a full disk
+    is a 507 ``InsufficientStorage``.
+
+    ``lookup`` opens short read-only sessions for what is read before the files are checked
+    (the environment, an earlier request with the same ``Idempotency-Key``). The API gives
+    one, so that ``session`` touches the database only for the insert: on SQLite its write
+    lock is then held for milliseconds, not while the files are staged and checked. Without
+    it, ``session`` does the reads too.
     """
-    env = environments.get(session, environment_id)
+    with _reading(session, lookup) as reader:
+        env = environments.get(reader, environment_id)
+        env_id, classes = env.id, list(env.classes)
     if archive is not None and (images or detections or cameras is not None):
         raise _invalid(
             "InvalidUpload", "send either an archive or images/detections/cameras, not both"
@@ -740,8 +889,8 @@ def create_snapshot(
     if idempotency_key is not None and not 0 < len(idempotency_key) <= 200:
         raise _invalid("InvalidUpload", "Idempotency-Key: 1 to 200 characters")
 
-    staging_dir = storage.tmp_dir()
-    try:
+    sweep_staging(storage)
+    with _staging_dir(storage) as staging_dir:
         staging = _Staging(root=staging_dir, settings=settings)
         if archive is not None:
             _stage_archive(staging, archive)
@@ -760,13 +909,106 @@ def create_snapshot(
                 )
         digest = staging.digest()
         if idempotency_key is not None:
-            replay = _replay(session, env.id, idempotency_key, digest)
+            with _reading(session, lookup) as reader:
+                replay = _replay(reader, env_id, idempotency_key, digest)
+            if replay is not None and lookup is not None:
+                replay = _replay(session, env_id, idempotency_key, digest)  # in this session
             if replay is not None:
                 return replay
-        checked = _validate(staging, env.classes)
-        return _insert(session, storage, env, staging, checked, idempotency_key, digest)
+        checked = _validate(staging, classes)
+        return _insert(session, storage, env_id, staging, checked, idempotency_key, digest)
+
+
+@contextmanager
+def _reading(session: Session, lookup: sessionmaker[Session] | None) -> Iterator[Session]:
+    """``session``, or a short read-only session of ``lookup`` (closed, never committed)."""
+    if lookup is None:
+        yield session
+        return
+    with lookup() as reader:
+        yield reader
+
+
+# --- staging folders ------------------------------------------------------------------------
+
+STAGING = ".tmp"
+_STALE_UNLOCKED_S = 3600.0
+
+
+def _disk_full(exc: OSError) -> bool:
+    return exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
+def _no_space(where: str) -> InsufficientStorage:
+    return InsufficientStorage(
+        f"{where}: the server's storage is full; nothing of this upload was kept, try again later"
+    )
+
+
+@contextmanager
+def _staging_dir(storage: LocalStorage) -> Iterator[Path]:
+    """A private staging folder ``.tmp/<id>``, removed on the way out. While it exists this
+    process holds an exclusive ``flock`` on ``.tmp/<id>.lock``: the kernel drops the lock
+    when the process dies, which is how :func:`sweep_staging` tells an abandoned folder (an
+    API killed mid-upload) from one in use by another process."""
+    base = storage.path(STAGING)
+    name = uuid.uuid4().hex
+    lock_path, root = base / f"{name}.lock", base / name
+    try:
+        base.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock_path, os.O_CREAT | os.O_RDWR, 0o600)
+    except OSError as exc:
+        if _disk_full(exc):
+            raise _no_space("upload") from exc
+        raise
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        try:
+            root.mkdir()
+        except OSError as exc:
+            if _disk_full(exc):
+                raise _no_space("upload") from exc
+            raise
+        yield root
     finally:
-        shutil.rmtree(staging_dir, ignore_errors=True)
+        shutil.rmtree(root, ignore_errors=True)
+        lock_path.unlink(missing_ok=True)
+        os.close(fd)
+
+
+def sweep_staging(storage: LocalStorage) -> int:
+    """Remove staging folders whose process is gone (their lock is free), and unlocked
+    leftovers older than an hour; returns how many were removed. Safe beside live uploads
+    in other processes: a held lock is never taken."""
+    base = storage.path(STAGING)
+    if not base.is_dir():
+        return 0
+    removed = 0
+    for lock_path in base.glob("*.lock"):
+        try:
+            fd = os.open(lock_path, os.O_RDWR)
+        except FileNotFoundError:
+            continue
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                continue  # a live upload
+            shutil.rmtree(base / lock_path.stem, ignore_errors=True)
+            lock_path.unlink(missing_ok=True)
+            removed += 1
+        finally:
+            os.close(fd)
+    cutoff = time.time() - _STALE_UNLOCKED_S
+    for folder in base.iterdir():
+        if (
+            folder.is_dir()
+            and not (base / f"{folder.name}.lock").exists()
+            and folder.stat().st_mtime < cutoff
+        ):
+            shutil.rmtree(folder, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ingested | None:
@@ -793,14 +1035,15 @@ def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ing
 def _insert(
     session: Session,
     storage: LocalStorage,
-    env: Environment,
+    env_id: str,
     staging: _Staging,
     checked: _Checked,
     idempotency_key: str | None,
     digest: str,
 ) -> Ingested:
     # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
-    session.execute(select(Environment.id).where(Environment.id == env.id).with_for_update())
+    session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
+    env = environments.get(session, env_id)  # 404 if it went while the files were checked
     snapshot_id = new_id()
     prefix = f"snapshots/{snapshot_id}"
     snap: Snapshot | None = None
@@ -866,7 +1109,9 @@ def read_capture(
             continue
         file_key = f"{prefix}/images/{path.name}"
         with storage.open(file_key) as fh:
-            width, height = probe_image(fh, file_key, settings.max_image_pixels)
+            width, height = probe_image(
+                fh, file_key, settings.max_image_pixels, settings.max_image_decoded_bytes
+            )
         labels_key: str | None = f"{prefix}/labels/{path.stem}.txt"
         detections: list[dict[str, Any]] = []
         if labels_key is not None and storage.exists(labels_key):

@@ -12,6 +12,7 @@ from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
 from app.core import ingest, snapshots
+from app.core.db import get_read_session_factory
 from app.core.errors import Conflict
 
 router = APIRouter(tags=["snapshots"], responses=ERRORS)
@@ -63,6 +64,9 @@ def upload_snapshot(
         cameras=ingest.UploadPart(cameras.filename or "", cameras.file) if cameras else None,
         archive=ingest.UploadPart(archive.filename or "", archive.file) if archive else None,
         idempotency_key=idempotency_key,
+        # Reads in short sessions of their own: this request's session takes the database's
+        # write lock (SQLite) only for the insert, not while the files are checked.
+        lookup=get_read_session_factory(),
     )
     response.headers["Location"] = f"/v1/jobs/{result.job.id}"
     if not result.created:

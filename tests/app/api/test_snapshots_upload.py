@@ -420,7 +420,9 @@ def test_zip_bomb_is_bounded_by_bytes_read(
     client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     env_id = make_env(client, keys)
-    set_limits(monkeypatch, max_file_bytes=1_000_000)
+    # The ratio check (test_upload_limits) would refuse it before inflating: turn it off
+    # here to see the per-file limit stop a member while it is being written.
+    set_limits(monkeypatch, max_file_bytes=1_000_000, max_archive_ratio=1_000_000)
     members = dict(nested(capture()), **{"cap/a9.jpg": b"\0" * 20_000_000})
     packed = zip_bytes(members)
     assert len(packed) < 100_000

@@ -5,18 +5,35 @@ is measured, not assumed."""
 from __future__ import annotations
 
 import asyncio
+import io
 import json
+import struct
+import tarfile
+import zipfile
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pytest
+from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.api.limits import body_limit
+from app.core.errors import DomainError
 from app.core.settings import get_settings
 from app.main import create_app
-from tests.app.api.test_snapshots_upload import capture
+from tests.app.api.test_snapshots_upload import (
+    archive_part,
+    as_parts,
+    capture,
+    make_env,
+    nested,
+    tar_bytes,
+    upload,
+    zip_bytes,
+)
 from tests.app.conftest import Keys
 
 MB = 1024**2
@@ -238,3 +255,150 @@ def test_authenticated_uploads_and_json_still_work(
         len(body),
     )
     assert answer.status == 201, answer
+
+
+# --- archives, images and error details (hostile captures) ----------------------------------
+
+
+def staged_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Record the bytes each staged file reached on disk (its final or rejected size)."""
+    from app.core import ingest
+
+    sizes: list[int] = []
+    real = ingest._stage_file
+
+    def counting(staging: Any, kind: str, name: str, where: str, source: Any) -> Any:
+        target = staging.root / kind / name if kind else staging.root / name
+        try:
+            staged = real(staging, kind, name, where, source)
+        finally:
+            sizes.append(target.stat().st_size if target.exists() else 0)
+        return staged
+
+    monkeypatch.setattr(ingest, "_stage_file", counting)
+    return sizes
+
+
+def test_zip_bomb_is_refused_before_anything_is_inflated(
+    client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch, data_dir: Path
+) -> None:
+    env_id = make_env(client, keys)
+    members = dict(nested(capture()), **{"cap/a9.jpg": b"\0" * 150 * MB})
+    packed = zip_bytes(members)
+    assert len(packed) < 200_000  # ~1000× smaller than what it unpacks to
+    sizes = staged_bytes(monkeypatch)
+    r = upload(client, keys, env_id, archive_part("c.zip", packed))
+    assert (r.status_code, r.json()["error"]) == (413, "ArchiveBomb"), r.text
+    assert "max_archive_ratio" in r.json()["detail"]
+    assert sum(sizes) == 0  # refused from the declared sizes: nothing was written
+    tmp = data_dir / "files" / ".tmp"
+    assert not tmp.exists() or list(tmp.iterdir()) == []
+
+
+def test_tar_gz_bomb_stops_at_the_limit_while_extracting(
+    client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    env_id = make_env(client, keys)
+    members = dict(nested(capture()), **{"cap/a9.jpg": b"\0" * 150 * MB})
+    packed = tar_bytes(members, "w:gz")
+    assert len(packed) < 400_000
+    sizes = staged_bytes(monkeypatch)
+    r = upload(client, keys, env_id, archive_part("c.tar.gz", packed))
+    assert (r.status_code, r.json()["error"]) == (413, "ArchiveBomb"), r.text
+    # at most max_archive_ratio × what was read of the archive, plus the slack
+    assert sum(sizes) <= 100 * len(packed) + 2 * MB, sizes
+
+
+def test_every_archive_member_counts(
+    client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Folders are members too: an archive of a few files and thousands of folder entries
+    is refused, however few files it holds."""
+    env_id = make_env(client, keys)
+    monkeypatch.setenv("TWINDELTA_MAX_ARCHIVE_MEMBERS", "500")
+    get_settings.cache_clear()
+    out = io.BytesIO()
+    with tarfile.open(fileobj=out, mode="w:gz") as tf:
+        for i in range(3000):
+            info = tarfile.TarInfo(f"d/{i}")
+            info.type = tarfile.DIRTYPE
+            tf.addfile(info)
+        for name, body in nested(capture()).items():
+            info = tarfile.TarInfo(name)
+            info.size = len(body)
+            tf.addfile(info, io.BytesIO(body))
+    r = upload(client, keys, env_id, archive_part("c.tar.gz", out.getvalue()))
+    assert (r.status_code, r.json()["error"]) == (413, "TooManyFiles"), r.text
+    assert "more than 500 archive members" in r.json()["detail"]
+    zipped = io.BytesIO()
+    with zipfile.ZipFile(zipped, "w") as zf:
+        for i in range(3000):
+            zf.writestr(f"d/{i}/", b"")
+        for name, body in nested(capture()).items():
+            zf.writestr(name, body)
+    r = upload(client, keys, env_id, archive_part("c.zip", zipped.getvalue()))
+    assert (r.status_code, r.json()["error"]) == (413, "TooManyFiles"), r.text
+
+
+def png_16bit_rgba(width: int, height: int) -> bytes:
+    """A valid PNG of ``width`` × ``height`` 16-bit RGBA zeros, deflated row by row."""
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    deflate = zlib.compressobj(9)
+    row = b"\0" * (1 + width * 8)
+    idat = b"".join(deflate.compress(row) for _ in range(height)) + deflate.flush()
+    header = struct.pack(">IIBBBBB", width, height, 16, 6, 0, 0, 0)
+    return (
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+    )
+
+
+def test_png_decoded_size_is_checked_before_decoding(
+    client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Under the pixel limit (1000×1000 < 2,000,000 pixels), over the decoded-bytes budget
+    (16-bit RGBA: 8,000,000 bytes > 4,000,000)."""
+    env_id = make_env(client, keys)
+    monkeypatch.setenv("TWINDELTA_MAX_IMAGE_PIXELS", "2000000")
+    monkeypatch.setenv("TWINDELTA_MAX_IMAGE_DECODED_BYTES", "4000000")
+    get_settings.cache_clear()
+    files = capture()
+    files["a2.png"] = png_16bit_rgba(1000, 1000)
+    r = upload(client, keys, env_id, as_parts(files))
+    assert (r.status_code, r.json()["error"]) == (413, "ImageTooLarge"), r.text
+    assert "a2.png: 1000×1000 at 8 bytes a pixel" in r.json()["detail"]
+
+
+def test_the_reviewers_7000_square_16bit_png_is_refused_by_default() -> None:
+    from app.core import ingest
+
+    settings = get_settings()
+    bomb = png_16bit_rgba(7000, 7000)
+    assert len(bomb) < 500_000
+    assert settings.max_image_pixels >= 7000 * 7000  # the pixel count alone lets it through
+    with pytest.raises(DomainError) as err:
+        ingest.probe_image(
+            io.BytesIO(bomb), "big.png", settings.max_image_pixels, settings.max_image_decoded_bytes
+        )
+    assert (err.value.status_code, err.value.code) == (413, "ImageTooLarge")
+
+
+def test_error_details_never_show_server_paths(
+    client: TestClient, keys: Keys, data_dir: Path
+) -> None:
+    env_id = make_env(client, keys)
+    files = capture()
+    files["a0.jpg"] = b"this is not an image at all"
+    r = upload(client, keys, env_id, as_parts(files))
+    assert (r.status_code, r.json()["error"]) == (422, "InvalidImage"), r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("a0.jpg: ")
+    for leak in (str(data_dir), "/.tmp/", "name="):
+        assert leak not in detail, detail
+    # the same through an archive member
+    members = dict(nested(capture()), **{"cap/a0.jpg": b"junk"})
+    r = upload(client, keys, env_id, archive_part("c.zip", zip_bytes(members)))
+    assert r.status_code == 422 and str(data_dir) not in r.json()["detail"], r.text

@@ -2,8 +2,8 @@
 servers), ``migrate``, ``create-key``, ``openapi``.
 
 ``serve`` starts the same processes production runs (uvicorn, a Celery worker for the cpu
-queue, one for the webhooks queue with the beat schedule), as child processes; it never
-imports the workers itself.
+queue, one for the webhooks queue, one for the maintenance queue with the beat schedule), as
+child processes; it never imports the workers itself.
 """
 
 from __future__ import annotations
@@ -37,7 +37,10 @@ def migrate() -> None:
 
 
 def worker_commands(data_dir: Path, cpu_concurrency: int) -> list[list[str]]:
-    """The Celery worker command lines of the embedded service."""
+    """The Celery worker command lines of the embedded service: the cpu queue (processes);
+    webhook deliveries on a thread pool of their own; and the maintenance queue (webhook
+    dispatch, job sweeper, retention) with the beat schedule, in a separate process, so
+    deliveries that hang until their deadline can never hold up the periodic tasks."""
     celery = [sys.executable, "-m", "celery", "-A", "workers.celery_app"]
     return [
         [
@@ -65,6 +68,20 @@ def worker_commands(data_dir: Path, cpu_concurrency: int) -> list[list[str]]:
             "4",
             "-n",
             "webhooks@%h",
+            "--loglevel",
+            "INFO",
+        ],
+        [
+            *celery,
+            "worker",
+            "-Q",
+            "maintenance",
+            "-P",
+            "threads",
+            "-c",
+            "4",
+            "-n",
+            "maintenance@%h",
             "--loglevel",
             "INFO",
             "-B",

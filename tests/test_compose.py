@@ -37,7 +37,7 @@ def test_compose_services_and_health_checks() -> None:
 # --- secrets, limits and the data volume (field hardening) ----------------------------------
 
 SECRET_VARS = ("POSTGRES_PASSWORD", "REDIS_PASSWORD", "TWINDELTA_BOOTSTRAP_ADMIN_KEY")
-APP_SERVICES = ("migrate", "api", "worker-cpu", "worker-webhooks")
+APP_SERVICES = ("migrate", "api", "worker-cpu", "worker-webhooks", "worker-maintenance")
 
 
 def _compose(env_file: Path, *args: str) -> subprocess.CompletedProcess[str]:

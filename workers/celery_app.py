@@ -8,5 +8,7 @@ from celery import Celery
 from app.core.queue import celery_config
 from app.core.settings import get_settings
 
-app = Celery("twindelta", include=["workers.tasks", "workers.webhook_tasks"])
+app = Celery(
+    "twindelta", include=["workers.tasks", "workers.webhook_tasks", "workers.maintenance_tasks"]
+)
 app.conf.update(celery_config(get_settings()))

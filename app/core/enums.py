@@ -35,6 +35,7 @@ class SnapshotState(StrEnum):
     reconstructed = "reconstructed"
     failed = "failed"
     cancelled = "cancelled"
+    deleted = "deleted"  # a tombstone: files, images, jobs and comparisons are gone
 
 
 class ObjectState(StrEnum):

@@ -126,6 +126,8 @@ class Snapshot(Base):
     cameras_key: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     reconstructed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    # set when retention deleted the photos (the cloud, cameras and detections stay)
+    images_deleted_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
     images: Mapped[list[SnapshotImage]] = relationship(
         back_populates="snapshot", order_by="SnapshotImage.name", cascade="all, delete-orphan"

@@ -23,13 +23,17 @@ log = logging.getLogger(__name__)
 
 CPU_QUEUE = "cpu"
 WEBHOOKS_QUEUE = "webhooks"
+# Beat's periodic tasks have a queue and a worker process of their own: deliveries can take
+# every thread of the webhooks worker (a slow receiver holds one until its deadline), and
+# the dispatcher and the sweeper must not wait behind them.
+MAINTENANCE_QUEUE = "maintenance"
 TASK_QUEUES: dict[str, str] = {
     "snapshot.process": CPU_QUEUE,
     "comparison.run": CPU_QUEUE,
     "object.prepare": CPU_QUEUE,
     "webhooks.deliver": WEBHOOKS_QUEUE,
-    "webhooks.dispatch": WEBHOOKS_QUEUE,
-    "maintenance.sweep": WEBHOOKS_QUEUE,
+    "webhooks.dispatch": MAINTENANCE_QUEUE,
+    "maintenance.sweep": MAINTENANCE_QUEUE,
 }
 _PENDING = "twindelta_pending_tasks"
 

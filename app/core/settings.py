@@ -67,6 +67,17 @@ class Settings(BaseSettings):
     webhook_timeout_s: float = 10.0
     webhook_allowed_networks: list[str] = Field(default_factory=list)
 
+    # Retention (app/core/retention.py), run every ``retention_interval_s`` by beat; 0 turns
+    # a rule off. Photos of snapshots older than ``retention_images_after_days`` are deleted
+    # (clouds, cameras and detections stay); only the newest ``retention_keep_last_snapshots``
+    # snapshots of each environment are kept (never the newest reconstructed one). Work
+    # folders of finished jobs go at once; upload staging and orphaned files left by killed
+    # processes once older than ``stale_files_after_s``.
+    retention_images_after_days: float = Field(default=0.0, ge=0)
+    retention_keep_last_snapshots: int = Field(default=0, ge=0)
+    retention_interval_s: float = Field(default=3600.0, gt=0)
+    stale_files_after_s: float = Field(default=24 * 3600.0, gt=0)
+
     @field_validator("bootstrap_admin_key")
     @classmethod
     def _refuse_weak_key(cls, value: str | None) -> str | None:

@@ -13,17 +13,20 @@ from app.core.models import Comparison, Job, Snapshot
 
 def get(session: Session, snapshot_id: str) -> Snapshot:
     snap = session.get(Snapshot, snapshot_id)
-    if snap is None:
+    if snap is None or snap.state == SnapshotState.deleted:  # a tombstone (app/core/retention)
         raise NotFound(f"snapshot {snapshot_id} not found")
     return snap
 
 
 def history(session: Session, environment_id: str) -> list[Snapshot]:
-    """Every snapshot of an environment, newest first."""
+    """Every snapshot of an environment, newest first (deleted ones are left out)."""
     return list(
         session.scalars(
             select(Snapshot)
-            .where(Snapshot.environment_id == environment_id)
+            .where(
+                Snapshot.environment_id == environment_id,
+                Snapshot.state != SnapshotState.deleted,
+            )
             .order_by(Snapshot.seq.desc())
         ).all()
     )

@@ -46,7 +46,7 @@ def test_killed_worker_job_finishes_exactly_once(
     port = free_port()
     procs.api(port)
     procs.worker("cpu1", "cpu")
-    procs.worker("beat", "webhooks", "-B", "-s", str(tmp_path / "beat-schedule"))
+    procs.worker("beat", "maintenance", "-B", "-s", str(tmp_path / "beat-schedule"))
     client = api_client(port)
     torus = o3d.geometry.TriangleMesh.create_torus(0.2, 0.05, 200, 100)
     obj = upload_object(client, "torus", mesh_bytes(tmp_path, torus, "torus"))
@@ -87,7 +87,7 @@ def test_redis_restart_with_queued_jobs_loses_none(
     redis_server.restart()  # an in-memory Redis: every queued message is gone
 
     procs.worker("cpu", "cpu")
-    procs.worker("beat", "webhooks", "-B", "-s", str(tmp_path / "beat-schedule"))
+    procs.worker("beat", "maintenance", "-B", "-s", str(tmp_path / "beat-schedule"))
     for job_id in jobs:
         job = poll_job(client, job_id, 90)
         assert job["state"] == "succeeded", job

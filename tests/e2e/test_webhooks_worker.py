@@ -10,17 +10,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator
+from datetime import timedelta
 from pathlib import Path
 
 import pytest
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.cli import worker_commands
 from app.core import db, events, queue, webhooks
-from app.core.enums import DeliveryState, EventType
-from app.core.models import Delivery, DeliveryAttempt, Environment, WebhookSubscription
+from app.core.enums import DeliveryState, EventType, JobKind, JobState
+from app.core.models import Delivery, DeliveryAttempt, Environment, Job, WebhookSubscription, utcnow
+from app.core.queue import CPU_QUEUE
 from app.core.settings import get_settings
-from tests.app.core.test_webhooks import Receiver
+from tests.app.core.test_webhooks import DripServer, Receiver, overlapping
 from tests.e2e.conftest import Processes, RedisServer, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
@@ -61,10 +64,17 @@ def stack(
     queue.get_sender.cache_clear()
 
 
-def start_worker(procs: Processes, name: str, tmp_path: Path) -> None:
-    procs.worker(
-        name, "webhooks", "-P", "threads", "-c", "4", "-B", "-s", str(tmp_path / f"{name}-beat")
-    )
+def start_worker(procs: Processes, name: str, tmp_path: Path) -> list[str]:
+    """Every worker but the cpu one, with the command lines ``twindelta serve`` uses (the
+    embedded layout under test); returns their process names."""
+    data_dir = tmp_path / name
+    data_dir.mkdir(exist_ok=True)
+    names = []
+    for i, argv in enumerate(worker_commands(data_dir, 1)):
+        if argv[argv.index("-Q") + 1] != CPU_QUEUE:
+            names.append(f"{name}-{i}")
+            procs.start(names[-1], argv)
+    return names
 
 
 def subscribe(factory: sessionmaker[Session], url: str, types: list[EventType]) -> str:
@@ -108,7 +118,7 @@ def test_slow_receiver_order_and_worker_killed_mid_schedule(
         gate = receiver.gate("/slow")  # the slow receiver hangs until the gate opens
         receiver.plan("/flaky", [500, 500])
         env = make_env(factory)
-        start_worker(procs, "wh1", tmp_path)
+        wh1 = start_worker(procs, "wh1", tmp_path)
         failed_id = record(factory, env, 0, EventType.job_failed)
         ids = [record(factory, env, n, EventType.comparison_completed) for n in (1, 2, 3)]
 
@@ -125,7 +135,8 @@ def test_slow_receiver_order_and_worker_killed_mid_schedule(
 
         # the flaky receiver failed twice; its third attempt is 10 s away, in the database only
         wait_until(lambda: len(attempts(factory, flaky)) == 2, 30, "two failed attempts")
-        procs.kill("wh1")  # SIGKILL the worker, its threads and its embedded beat
+        for name in wh1:  # SIGKILL the workers, their threads and the embedded beat
+            procs.kill(name)
         assert [h.status for h in receiver.on("/flaky")] == [500, 500]
         assert [d.state for d in of(factory, flaky)] == [DeliveryState.pending]
 
@@ -157,5 +168,81 @@ def attempts(factory: sessionmaker[Session], sub_id: str) -> list[DeliveryAttemp
             .join(Delivery, Delivery.id == DeliveryAttempt.delivery_id)
             .where(Delivery.subscription_id == sub_id)
             .order_by(DeliveryAttempt.number)
+        )
+        return list(s.scalars(query))
+
+
+def test_drip_receivers_end_at_their_deadline_and_do_not_starve_dispatch_or_sweep(
+    tmp_path: Path, stack: tuple[Processes, sessionmaker[Session]]
+) -> None:
+    """Four receivers answering one byte every 1.5 s take every delivery thread (4). Each
+    attempt still ends at its 5 s deadline, no event is on two connections at once, and the
+    dispatcher and the sweeper keep running meanwhile (they are not queued behind
+    deliveries)."""
+    procs, factory = stack
+    drip = DripServer(interval_s=1.5, for_s=60.0).start()
+    receiver = Receiver().start()
+    try:
+        changes = [EventType.comparison_completed]
+        drips = [subscribe(factory, drip.url(f"/d{i}"), changes) for i in range(4)]
+        probe = subscribe(factory, receiver.url("/probe"), [EventType.job_failed])
+        env = make_env(factory)
+        start_worker(procs, "wh", tmp_path)
+        record(factory, env, 1, EventType.comparison_completed)
+        wait_until(lambda: len(drip.open_now()) == 4, 60, "four deliveries hanging")
+
+        # every delivery thread is taken: a lost deliver message and a lost job message
+        # must still be found by the dispatcher and the sweeper
+        record(factory, env, 2, EventType.job_failed)
+        with factory.begin() as s:
+            [probe_delivery] = s.scalars(select(Delivery).where(Delivery.subscription_id == probe))
+            probe_delivery.dispatched_at = None  # its message is lost
+            job = Job(
+                kind=JobKind.snapshot,
+                task_name="snapshot.process",
+                state=JobState.queued,
+                sends=1,
+                enqueued_at=utcnow() - timedelta(hours=1),  # its message is lost too
+            )
+            s.add(job)
+            s.flush()
+            probe_id, job_id = probe_delivery.id, job.id
+
+        def repaired() -> bool:
+            with factory() as s:
+                delivery, lost = s.get(Delivery, probe_id), s.get(Job, job_id)
+                assert delivery is not None and lost is not None
+                return delivery.dispatched_at is not None and lost.sends > 1
+
+        wait_until(repaired, 3.5, "dispatch and sweep while every delivery thread hangs")
+        assert len(drip.open_now()) == 4  # still hanging: they did not free a thread
+
+        # each drip attempt ends at its deadline and is logged as such
+        wait_until(lambda: len(drip_attempts(factory, drips)) >= 4, 15, "four attempts logged")
+        for attempt in drip_attempts(factory, drips)[:4]:
+            assert (attempt.error or "").startswith("deadline"), attempt.error
+            assert attempt.latency_ms is not None and attempt.latency_ms < 5000 + 800
+        closed = [c for c in drip.connections if c.closed_at is not None]
+        assert len(closed) >= 4
+        assert all(c.closed_at - c.opened_at < 5 + 1.0 for c in closed)  # type: ignore[operator]
+        wait_until(
+            lambda: [d.state for d in of(factory, probe)] == [DeliveryState.succeeded],
+            30,
+            "the probe delivery",
+        )
+        assert overlapping(drip.connections) == []  # never two connections for one event
+        assert len({c.webhook_id for c in drip.connections}) == 1
+    finally:
+        drip.stop()
+        receiver.stop()
+
+
+def drip_attempts(factory: sessionmaker[Session], subs: list[str]) -> list[DeliveryAttempt]:
+    with factory() as s:
+        query = (
+            select(DeliveryAttempt)
+            .join(Delivery, Delivery.id == DeliveryAttempt.delivery_id)
+            .where(Delivery.subscription_id.in_(subs))
+            .order_by(DeliveryAttempt.attempted_at)
         )
         return list(s.scalars(query))

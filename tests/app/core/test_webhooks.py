@@ -143,6 +143,7 @@ def receiver() -> Iterator[Receiver]:
 class DripConnection:
     webhook_id: str | None
     opened_at: float
+    path: str = ""
     closed_at: float | None = None  # when the client hung up (or the drip ended)
 
 
@@ -191,6 +192,7 @@ class DripServer:
                     return
                 request += chunk
             raw_head, body = request.split(b"\r\n\r\n", 1)
+            record.path = raw_head.split(b" ", 2)[1].decode("latin-1")
             length = 0
             for line in raw_head.decode("latin-1").lower().split("\r\n"):
                 name, _, value = line.partition(":")
@@ -229,10 +231,10 @@ class DripServer:
 
 
 def overlapping(connections: list[DripConnection]) -> list[tuple[float, float]]:
-    """Pairs of connections carrying the same event at the same time."""
+    """Pairs of connections carrying the same event to the same path at the same time."""
     out = []
     for a, b in itertools.combinations(connections, 2):
-        if a.webhook_id is None or a.webhook_id != b.webhook_id:
+        if a.webhook_id is None or (a.path, a.webhook_id) != (b.path, b.webhook_id):
             continue
         a_end, b_end = a.closed_at or time.monotonic(), b.closed_at or time.monotonic()
         if a.opened_at < b_end and b.opened_at < a_end:

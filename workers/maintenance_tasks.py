@@ -1,0 +1,29 @@
+"""Storage maintenance on beat's schedule (``maintenance.retention``, every
+``retention_interval_s``): the retention policy from the settings, then the cleanup of what
+killed processes left (app/core/retention.py). Files go only after each transaction commits."""
+
+from __future__ import annotations
+
+import logging
+
+from app.core import retention as policy
+from app.core.db import transaction
+from app.core.settings import get_settings
+from app.core.storage import LocalStorage
+from workers.celery_app import app
+
+log = logging.getLogger(__name__)
+
+
+@app.task(name="maintenance.retention")
+def retention() -> dict[str, int]:
+    """Apply the retention policy, then remove stale work folders, staging and orphans."""
+    settings = get_settings()
+    storage = LocalStorage(settings.resolved_storage_dir)
+    with transaction() as session:
+        counts = policy.apply_policy(session, storage, policy.Policy.from_settings(settings))
+    with transaction() as session:
+        counts.update(policy.cleanup_files(session, storage, settings.stale_files_after_s))
+    if any(counts.values()):
+        log.info("retention: %s", counts)
+    return counts

@@ -66,7 +66,9 @@ def create_app() -> FastAPI:
 
     @app.exception_handler(DomainError)
     async def domain_error(_request: Request, exc: DomainError) -> JSONResponse:
-        return _error(exc.status_code, exc.code, exc.detail)
+        response = _error(exc.status_code, exc.code, exc.detail)
+        response.headers.update(exc.headers or {})  # e.g. Retry-After on a 429
+        return response
 
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:

@@ -1,10 +1,10 @@
 """Request dependencies as ``Annotated`` aliases: a session that owns the transaction, the
-settings, storage, and API keys by scope."""
+settings, storage, and API keys by scope (with a per-process limit on unknown keys)."""
 
 from __future__ import annotations
 
 from collections.abc import Awaitable, Callable, Iterator
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
@@ -14,6 +14,7 @@ from app.core import auth
 from app.core.auth import Principal
 from app.core.db import get_read_session_factory, get_session_factory
 from app.core.enums import Scope
+from app.core.errors import Unauthorized
 from app.core.settings import Settings, get_settings
 from app.core.storage import LocalStorage
 
@@ -44,20 +45,47 @@ def _bearer(request: Request) -> str | None:
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
+def _client(request: Request) -> str:
+    return request.client.host if request.client else "unknown"
+
+
+def key_limiter(app: Any) -> auth.FailedKeyLimiter:
+    """The app's count of unknown keys by client address (one per app: per API process)."""
+    limiter: auth.FailedKeyLimiter | None = getattr(app.state, "failed_keys", None)
+    if limiter is None:
+        limiter = app.state.failed_keys = auth.FailedKeyLimiter()
+    return limiter
+
+
+async def authenticate_request(
+    app: Any, client: str, token: str | None, scope: Scope | None
+) -> Principal:
+    """The caller of a request to ``app`` from ``client`` with ``token`` holding ``scope``
+    (None: any valid key). 429 while ``client`` is over its limit of unknown keys (a
+    request with no key is not a guess and gets its 401); otherwise one indexed lookup in a
+    short session of its own, off the event loop, every request (no cache: a revocation
+    made by any process is refused at once)."""
+    settings = get_settings()
+    limit, window_s = settings.auth_failure_limit, settings.auth_failure_window_s
+    limiter = key_limiter(app)
+    if token:
+        limiter.check(client, limit=limit, window_s=window_s)
+    try:
+        return await run_in_threadpool(_authenticate, token, scope)
+    except Unauthorized:
+        if token:
+            limiter.record_failure(client, limit=limit, window_s=window_s)
+        raise
+
+
 def _require(scope: Scope) -> Callable[[Request], Awaitable[Principal]]:
     async def check(request: Request) -> Principal:
-        # Async, so a cached key costs no thread-pool hop; a cache miss runs one indexed
-        # lookup in a short session of its own, off the event loop.
-        token = _bearer(request)
-        principal = auth.cached(token, scope)
-        if principal is not None:
-            return principal
-        return await run_in_threadpool(_authenticate, token, scope)
+        return await authenticate_request(request.app, _client(request), _bearer(request), scope)
 
     return check
 
 
-def _authenticate(token: str | None, scope: Scope) -> Principal:
+def _authenticate(token: str | None, scope: Scope | None) -> Principal:
     with get_read_session_factory()() as session:
         return auth.authenticate(session, token, scope)
 
@@ -65,3 +93,4 @@ def _authenticate(token: str | None, scope: Scope) -> Principal:
 ReadKey = Annotated[Principal, Depends(_require(Scope.read))]
 CaptureKey = Annotated[Principal, Depends(_require(Scope.capture))]
 AdminKey = Annotated[Principal, Depends(_require(Scope.admin))]
+MetricsKey = Annotated[Principal, Depends(_require(Scope.metrics))]

@@ -5,8 +5,9 @@ the route's dependencies run, so an API-key dependency alone would answer 401 on
 stranger's whole upload was on disk. :class:`BodyGuard` is an ASGI middleware in front of
 the routes: for a ``/v1`` request that carries a body it
 
-1. answers 401 when the ``Authorization`` key is missing, unknown or revoked (any valid key
-   passes here; the route's dependency still checks the scope and answers 403), and
+1. answers 401 when the ``Authorization`` key is missing, unknown or revoked (429 while
+   the client is over its limit of unknown keys; any valid key passes here, the route's
+   dependency still checks the scope and answers 403), and
 2. caps the body: a snapshot upload at ``max_upload_bytes``, an object model at
    ``max_file_bytes`` (each plus the multipart framing), everything else (JSON) at
    ``max_json_bytes``. A declared ``Content-Length`` over the cap is a 413 before reading;
@@ -20,14 +21,11 @@ from __future__ import annotations
 import json
 import re
 
-from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.core import auth
-from app.core.db import get_read_session_factory
-from app.core.enums import Scope as KeyScope
-from app.core.errors import DomainError, Forbidden
+from app.api.deps import authenticate_request
+from app.core.errors import DomainError
 from app.core.settings import Settings, get_settings
 
 # Room for the multipart framing: part headers (~200 bytes each) and the form fields.
@@ -60,30 +58,17 @@ def _bearer(headers: Headers) -> str | None:
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
-def _known_key(token: str | None) -> None:
-    """Raise Unauthorized unless ``token`` is a valid (not revoked) key of any scope."""
-    if token and any(auth.cached(token, scope) for scope in KeyScope):
-        return
-    with get_read_session_factory()() as session:
-        try:
-            auth.authenticate(session, token, KeyScope.read)
-        except Forbidden:
-            return  # a valid key without the read scope: the route checks its own scope
-
-
-async def _answer(send: Send, status: int, code: str, detail: str) -> None:
+async def _answer(
+    send: Send, status: int, code: str, detail: str, extra: dict[str, str] | None = None
+) -> None:
     body = json.dumps({"error": code, "detail": detail}).encode()
-    await send(
-        {
-            "type": "http.response.start",
-            "status": status,
-            "headers": [
-                (b"content-type", b"application/json"),
-                (b"content-length", str(len(body)).encode()),
-                (b"connection", b"close"),
-            ],
-        }
-    )
+    headers = [
+        (b"content-type", b"application/json"),
+        (b"content-length", str(len(body)).encode()),
+        (b"connection", b"close"),
+    ]
+    headers += [(k.lower().encode(), v.encode()) for k, v in (extra or {}).items()]
+    await send({"type": "http.response.start", "status": status, "headers": headers})
     await send({"type": "http.response.body", "body": body})
 
 
@@ -109,9 +94,11 @@ class BodyGuard:
             await self.app(scope, receive, send)  # no body to protect
             return
         try:
-            await run_in_threadpool(_known_key, _bearer(headers))
+            client = scope["client"][0] if scope.get("client") else "unknown"
+            # Any valid key passes (scope None); the route's dependency checks its scope.
+            await authenticate_request(scope["app"], client, _bearer(headers), None)
         except DomainError as exc:  # 401 (or whatever the key check answers, e.g. 429)
-            await _answer(send, exc.status_code, exc.code, exc.detail)
+            await _answer(send, exc.status_code, exc.code, exc.detail, exc.headers)
             return
         cap, what = body_limit(scope["method"], scope["path"], get_settings())
         detail = f"the request body is larger than {cap} bytes ({what})"

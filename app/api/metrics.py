@@ -20,6 +20,8 @@ from prometheus_client.registry import Collector
 from sqlalchemy import func, select
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.api.deps import MetricsKey
+from app.api.schemas.common import ERRORS
 from app.core.db import get_read_session_factory
 from app.core.models import Job
 
@@ -74,9 +76,11 @@ REGISTRY.register(JobCollector())
 router = APIRouter(tags=["health"])
 
 
-@router.get("/metrics", response_class=Response)
-def metrics() -> Response:
-    """Prometheus metrics: requests, latencies, jobs by kind and state, job durations."""
+@router.get("/metrics", response_class=Response, responses=ERRORS)
+def metrics(_key: MetricsKey) -> Response:
+    """Prometheus metrics: requests, latencies, jobs by kind and state, job durations. Needs
+    a key with the ``metrics`` scope (``read`` and ``admin`` imply it; a key limited to
+    environments does not get it, since the figures cover every environment)."""
     return Response(generate_latest(REGISTRY), media_type=CONTENT_TYPE_LATEST)
 
 

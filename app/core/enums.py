@@ -9,6 +9,7 @@ class Scope(StrEnum):
     capture = "capture"
     read = "read"
     admin = "admin"
+    metrics = "metrics"
 
 
 class JobState(StrEnum):

@@ -9,6 +9,7 @@ class DomainError(Exception):
 
     status_code: int = 400
     code: str = "BadRequest"
+    headers: dict[str, str] | None = None
 
     def __init__(self, detail: str, *, code: str | None = None) -> None:
         super().__init__(detail)
@@ -40,6 +41,17 @@ class Unauthorized(DomainError):
 class Forbidden(DomainError):
     status_code = 403
     code = "Forbidden"
+
+
+class TooManyRequests(DomainError):
+    """429 with ``Retry-After``: the caller must wait ``retry_after_s`` seconds."""
+
+    status_code = 429
+    code = "TooManyRequests"
+
+    def __init__(self, detail: str, *, retry_after_s: int) -> None:
+        super().__init__(detail)
+        self.headers = {"Retry-After": str(retry_after_s)}
 
 
 class PayloadTooLarge(DomainError):

@@ -24,6 +24,12 @@ class Settings(BaseSettings):
     broker_url: str | None = None
     storage_dir: Path | None = None
     bootstrap_admin_key: str | None = None
+    # After this many unknown or revoked API keys from one client address within
+    # ``auth_failure_window_s``, that address gets 429 (with Retry-After) for the rest of the
+    # window. Counted in each API process; the address is the socket peer, or the one
+    # uvicorn takes from X-Forwarded-For with --proxy-headers behind a trusted proxy.
+    auth_failure_limit: int = Field(default=20, ge=1)
+    auth_failure_window_s: float = Field(default=60.0, gt=0)
 
     # Ingest limits: a request over any of them gets 413 and leaves nothing behind.
     max_upload_files: int = 2000

@@ -7,12 +7,16 @@ from fastapi import APIRouter
 from app.api.deps import ReadKey, SessionDep
 from app.api.schemas.common import ERRORS
 from app.api.schemas.comparisons import ComparisonRead
-from app.core import comparisons
+from app.core import auth, comparisons
 
 router = APIRouter(prefix="/comparisons", tags=["comparisons"], responses=ERRORS)
 
 
 @router.get("/{comparison_id}")
-def get_comparison(comparison_id: str, session: SessionDep, _key: ReadKey) -> ComparisonRead:
+def get_comparison(comparison_id: str, session: SessionDep, key: ReadKey) -> ComparisonRead:
     """Distances, the cluster × class identification table, and the changes with poses."""
-    return ComparisonRead.of(comparisons.get(session, comparison_id))
+    comparison = comparisons.get(session, comparison_id)
+    auth.require_environment(
+        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
+    )
+    return ComparisonRead.of(comparison)

@@ -16,7 +16,7 @@ from app.api.schemas.environments import (
     TwinStateRead,
 )
 from app.api.schemas.snapshots import SnapshotRead
-from app.core import comparisons, environments, snapshots, twin
+from app.core import auth, comparisons, environments, snapshots, twin
 
 router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
 
@@ -31,20 +31,26 @@ def create_environment(
 
 
 @router.get("")
-def list_environments(session: SessionDep, _key: ReadKey) -> list[EnvironmentRead]:
-    """Every environment."""
-    return [EnvironmentRead.model_validate(e) for e in environments.list_all(session)]
+def list_environments(session: SessionDep, key: ReadKey) -> list[EnvironmentRead]:
+    """Every environment the key reaches."""
+    return [
+        EnvironmentRead.model_validate(e)
+        for e in environments.list_all(session)
+        if auth.can_reach(key, e.id)
+    ]
 
 
 @router.get("/{environment_id}")
-def get_environment(environment_id: str, session: SessionDep, _key: ReadKey) -> EnvironmentRead:
+def get_environment(environment_id: str, session: SessionDep, key: ReadKey) -> EnvironmentRead:
     """One environment."""
+    auth.require_environment(key, environment_id)
     return EnvironmentRead.model_validate(environments.get(session, environment_id))
 
 
 @router.get("/{environment_id}/snapshots")
-def list_snapshots(environment_id: str, session: SessionDep, _key: ReadKey) -> list[SnapshotRead]:
+def list_snapshots(environment_id: str, session: SessionDep, key: ReadKey) -> list[SnapshotRead]:
     """The environment's snapshot history, newest first."""
+    auth.require_environment(key, environment_id)
     environments.get(session, environment_id)
     return [
         SnapshotRead.of(
@@ -60,9 +66,10 @@ def create_comparison(
     body: ComparisonCreate,
     session: SessionDep,
     response: Response,
-    _key: AdminKey,
+    key: AdminKey,
 ) -> ComparisonRead:
     """Compare two reconstructed snapshots (again) with other options."""
+    auth.require_environment(key, environment_id)
     environments.get(session, environment_id)
     comparison = comparisons.create(
         session,
@@ -77,16 +84,18 @@ def create_comparison(
 
 @router.get("/{environment_id}/comparisons")
 def list_comparisons(
-    environment_id: str, session: SessionDep, _key: ReadKey
+    environment_id: str, session: SessionDep, key: ReadKey
 ) -> list[ComparisonRead]:
     """Every comparison of the environment, newest first."""
+    auth.require_environment(key, environment_id)
     environments.get(session, environment_id)
     return [ComparisonRead.of(c) for c in comparisons.list_for(session, environment_id)]
 
 
 @router.get("/{environment_id}/state")
-def get_state(environment_id: str, session: SessionDep, _key: ReadKey) -> TwinStateRead:
+def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinStateRead:
     """The twin as it stands: every instance present, with its current pose."""
+    auth.require_environment(key, environment_id)
     environments.get(session, environment_id)
     return TwinStateRead(
         environment=environment_id,
@@ -108,9 +117,14 @@ def get_state(environment_id: str, session: SessionDep, _key: ReadKey) -> TwinSt
 
 @router.get("/{environment_id}/objects/{instance_id}/history")
 def get_instance_history(
-    environment_id: str, instance_id: str, session: SessionDep, _key: ReadKey
+    environment_id: str, instance_id: str, session: SessionDep, key: ReadKey
 ) -> InstanceHistory:
     """Every pose an instance has had, with the snapshot that saw it."""
+    auth.require_environment(
+        key,
+        environment_id,
+        detail=f"instance {instance_id} not found in environment {environment_id}",
+    )
     instance, poses = twin.history(session, environment_id, instance_id)
     return InstanceHistory(
         instance_id=instance.id,

@@ -6,7 +6,7 @@ from fastapi import APIRouter, status
 from sqlalchemy import select
 
 from app.api.deps import AdminKey, SessionDep
-from app.api.schemas.common import ERRORS
+from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyRead
 from app.core import auth
 from app.core.errors import NotFound
@@ -17,8 +17,11 @@ router = APIRouter(prefix="/keys", tags=["keys"], responses=ERRORS)
 
 @router.post("", status_code=status.HTTP_201_CREATED)
 def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreated:
-    """Create a key with scopes; the response is the only time the token is shown."""
-    row, token = auth.create_key(session, body.name, [s.value for s in body.scopes])
+    """Create a key with scopes, optionally limited to environments; the response is the
+    only time the token is shown."""
+    row, token = auth.create_key(
+        session, body.name, [s.value for s in body.scopes], environment_ids=body.environment_ids
+    )
     return KeyCreated(**KeyRead.model_validate(row).model_dump(), key=token)
 
 
@@ -29,11 +32,15 @@ def list_keys(session: SessionDep, _key: AdminKey) -> list[KeyRead]:
     return [KeyRead.model_validate(r) for r in rows]
 
 
-@router.delete("/{key_id}")
+@router.delete(
+    "/{key_id}",
+    responses={409: {"model": ErrorOut, "description": "LastAdminKey: the last admin key"}},
+)
 def revoke_key(key_id: str, session: SessionDep, _key: AdminKey) -> KeyRead:
-    """Revoke a key; it stops working at once."""
+    """Revoke a key; every API process refuses it from its next request (409 for the last
+    admin key)."""
     row = session.get(ApiKey, key_id)
     if row is None:
         raise NotFound(f"key {key_id} not found")
-    auth.revoke(row)
+    auth.revoke(session, row)
     return KeyRead.model_validate(row)

@@ -11,7 +11,7 @@ from app.api.deps import CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDe
 from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
-from app.core import ingest, snapshots
+from app.core import auth, ingest, snapshots
 from app.core.db import get_read_session_factory
 from app.core.errors import Conflict
 
@@ -42,7 +42,7 @@ def upload_snapshot(
     storage: StorageDep,
     settings: SettingsDep,
     response: Response,
-    _key: CaptureKey,
+    key: CaptureKey,
     images: Annotated[list[UploadFile] | None, File(description="JPEG or PNG photos")] = None,
     detections: Annotated[
         list[UploadFile] | None, File(description="YOLO .txt files, one per image stem")
@@ -54,6 +54,7 @@ def upload_snapshot(
     idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
 ) -> SnapshotAccepted:
     """Upload a capture (loose files or one archive); a job reconstructs and compares it."""
+    auth.require_environment(key, environment_id)
     result = ingest.create_snapshot(
         session,
         storage,
@@ -78,9 +79,10 @@ def upload_snapshot(
 
 
 @router.get("/snapshots/{snapshot_id}")
-def get_snapshot(snapshot_id: str, session: SessionDep, _key: ReadKey) -> SnapshotRead:
+def get_snapshot(snapshot_id: str, session: SessionDep, key: ReadKey) -> SnapshotRead:
     """State, quality figures, its automatic comparison, links to artifacts."""
     snap = snapshots.get(session, snapshot_id)
+    auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
     return SnapshotRead.of(
         snap,
         snapshots.job_of(session, snap.id),
@@ -94,11 +96,12 @@ def get_snapshot(snapshot_id: str, session: SessionDep, _key: ReadKey) -> Snapsh
     responses={200: {"content": {"application/octet-stream": {}}}},
 )
 def get_pointcloud(
-    snapshot_id: str, session: SessionDep, storage: StorageDep, _key: ReadKey
+    snapshot_id: str, session: SessionDep, storage: StorageDep, key: ReadKey
 ) -> StreamingResponse:
     """The reconstructed cloud: binary PLY, coloured, in the environment frame (409 until
     the snapshot is reconstructed)."""
     snap = snapshots.get(session, snapshot_id)
+    auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
     if not snap.pointcloud_key:
         raise Conflict(
             f"snapshot {snapshot_id} has no point cloud (state {snap.state})",

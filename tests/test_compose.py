@@ -36,7 +36,12 @@ def test_compose_services_and_health_checks() -> None:
 
 # --- secrets, limits and the data volume (field hardening) ----------------------------------
 
-SECRET_VARS = ("POSTGRES_PASSWORD", "REDIS_PASSWORD", "TWINDELTA_BOOTSTRAP_ADMIN_KEY")
+SECRET_VARS = (
+    "POSTGRES_PASSWORD",
+    "REDIS_PASSWORD",
+    "TWINDELTA_SECRET_KEY",
+    "TWINDELTA_BOOTSTRAP_ADMIN_KEY",
+)
 APP_SERVICES = ("migrate", "api", "worker-cpu", "worker-webhooks", "worker-maintenance")
 
 
@@ -69,13 +74,15 @@ def _rendered(tmp_path: Path, values: dict[str, str]) -> dict[str, Any]:
 GOOD = {
     "POSTGRES_PASSWORD": "pg-5d1c0e7b9a4f4e2c",
     "REDIS_PASSWORD": "rd-8f2a6b3c1d0e4f5a",
+    "TWINDELTA_SECRET_KEY": "5e0f9c2a7b41d86e3f1a0c9b8d7e6f5a",
     "TWINDELTA_BOOTSTRAP_ADMIN_KEY": "",
 }
 
 
 def test_compose_refuses_to_render_without_passwords(tmp_path: Path) -> None:
-    """No default database or Redis password: compose stops and names the missing one."""
-    for missing in ("POSTGRES_PASSWORD", "REDIS_PASSWORD"):
+    """No default database or Redis password or secret key: compose stops and names the
+    missing one."""
+    for missing in ("POSTGRES_PASSWORD", "REDIS_PASSWORD", "TWINDELTA_SECRET_KEY"):
         env_file = tmp_path / f"no-{missing}.env"
         env_file.write_text("".join(f"{k}={v}\n" for k, v in GOOD.items() if k != missing))
         result = _compose(env_file, "-q")
@@ -95,6 +102,7 @@ def test_compose_uses_the_given_passwords_everywhere(tmp_path: Path) -> None:
         env = services[name]["environment"]
         assert f":{GOOD['POSTGRES_PASSWORD']}@postgres:5432/" in env["TWINDELTA_DATABASE_URL"]
         assert env["TWINDELTA_BROKER_URL"] == f"redis://:{GOOD['REDIS_PASSWORD']}@redis:6379/0"
+        assert env["TWINDELTA_SECRET_KEY"] == GOOD["TWINDELTA_SECRET_KEY"]
 
 
 def test_compose_services_have_memory_limits(tmp_path: Path) -> None:
@@ -130,9 +138,9 @@ def test_env_example_renders_and_names_every_secret(tmp_path: Path) -> None:
     assert set(SECRET_VARS) <= names
     filled = tmp_path / "filled.env"
     filled.write_text(
-        example.replace("POSTGRES_PASSWORD=", "POSTGRES_PASSWORD=a1b2c3d4e5f6a7b8").replace(
-            "REDIS_PASSWORD=", "REDIS_PASSWORD=c1d2e3f4a5b6c7d8"
-        )
+        example.replace("POSTGRES_PASSWORD=", "POSTGRES_PASSWORD=a1b2c3d4e5f6a7b8")
+        .replace("REDIS_PASSWORD=", "REDIS_PASSWORD=c1d2e3f4a5b6c7d8")
+        .replace("TWINDELTA_SECRET_KEY=", f"TWINDELTA_SECRET_KEY={GOOD['TWINDELTA_SECRET_KEY']}")
     )
     result = _compose(filled, "-q")
     assert result.returncode == 0, result.stderr

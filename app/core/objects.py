@@ -4,6 +4,7 @@ symmetry (worker side)."""
 
 from __future__ import annotations
 
+import errno
 import math
 from pathlib import PurePosixPath
 from typing import Any, BinaryIO
@@ -14,7 +15,13 @@ from sqlalchemy.orm import Session
 
 from app.core import jobs, jsondoc
 from app.core.enums import JobKind
-from app.core.errors import Conflict, InvalidInput, NotFound, PayloadTooLarge
+from app.core.errors import (
+    Conflict,
+    InsufficientStorage,
+    InvalidInput,
+    NotFound,
+    PayloadTooLarge,
+)
 from app.core.models import Job, LibraryObject, new_id, utcnow
 from app.core.storage import LocalStorage
 
@@ -104,6 +111,8 @@ def format_problem(suffix: str, head: bytes, size_bytes: int) -> str | None:
     stripped = head.lstrip()
     if suffix == ".ply" and not head.startswith(b"ply"):
         return "a PLY file starts with the line 'ply'"
+    if suffix == ".ply":
+        return _ply_count_problem(head, size_bytes)
     if suffix == ".glb" and not head.startswith(b"glTF"):
         return "a binary glTF (.glb) file starts with the bytes 'glTF'"
     if suffix == ".off":
@@ -119,6 +128,48 @@ def format_problem(suffix: str, head: bytes, size_bytes: int) -> str | None:
         return "an OBJ file is text with vertex lines ('v x y z')"
     if suffix == ".pcd" and b"FIELDS" not in head[:4096]:
         return "a PCD file has a header with a FIELDS line"
+    return None
+
+
+_PLY_SCALAR_BYTES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
+    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+    "double": 8, "float64": 8,
+}  # fmt: skip
+
+
+def _ply_count_problem(head: bytes, size_bytes: int) -> str | None:
+    """The PLY header's element counts against the file's size: each element needs at least
+    its binary size (a list at least its count) or two ASCII characters per value, so a
+    small file declaring billions of vertices is refused before a reader allocates for
+    them (the worker checks the same when it loads the file)."""
+    end = head.find(b"end_header")
+    if end < 0:  # a header longer than ``head`` is left to the worker's own check
+        return None if len(head) < size_bytes else "the PLY header has no 'end_header' line"
+    newline = head.find(b"\n", end)
+    body = size_bytes - (newline + 1 if newline >= 0 else len(head))
+    binary = False
+    elements: list[list[Any]] = []  # [name, count, bytes at least]
+    for line in head[:end].decode("latin-1").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            binary = words[1].startswith("binary")
+        elif len(words) == 3 and words[0] == "element":
+            if not (words[2].isascii() and words[2].isdigit()):
+                return f"element {words[1]!r} has no count"
+            elements.append([words[1], int(words[2]), 0])
+        elif len(words) >= 3 and words[0] == "property" and elements:
+            kind = words[2] if words[1] == "list" else words[1]
+            if kind not in _PLY_SCALAR_BYTES:
+                return f"unknown PLY property type {kind!r}"
+            elements[-1][2] += _PLY_SCALAR_BYTES[kind] if binary else 2
+    for name, count, at_least in elements:
+        if count * at_least > body:
+            return (
+                f"the header declares {count} {name} elements, which need at least "
+                f"{count * at_least} bytes, but the file holds {body} after its header"
+            )
     return None
 
 
@@ -160,6 +211,13 @@ def create(
     except OverflowError as exc:
         storage.delete_prefix(f"objects/{object_id}")
         raise PayloadTooLarge(f"file: larger than {max_bytes} bytes") from exc
+    except OSError as exc:
+        storage.delete_prefix(f"objects/{object_id}")
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise InsufficientStorage(
+                "file: the server's storage is full; nothing was kept, try again later"
+            ) from exc
+        raise
     if blob.size_bytes == 0:
         storage.delete_prefix(f"objects/{object_id}")
         raise InvalidInput(f"file: {filename!r} is empty")

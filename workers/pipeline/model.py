@@ -124,6 +124,105 @@ class PreparedModel:
 # --------------------------------------------------------------------------- loading
 
 
+class ModelFileError(InputError):
+    """A model file whose header promises more than the file holds (element counts past
+    its size) or whose faces name vertices it does not have."""
+
+    code = "InvalidModelFile"
+
+
+# Bytes of one PLY scalar (binary) by type name.
+_PLY_SCALAR_BYTES = {
+    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
+    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+    "double": 8, "float64": 8,
+}  # fmt: skip
+_HEADER_MAX_BYTES = 64 * 1024
+
+
+def check_model_header(path: Path) -> None:
+    """Check the element counts a PLY or OFF header declares against the file's size before
+    any reader allocates for them (a 1 kB file declaring 2 × 10⁹ vertices would otherwise
+    end in ``bad_alloc`` or the OOM killer). Each element needs at least its binary size
+    (a list at least its count) or, in ASCII, two characters per value. Raises
+    :class:`ModelFileError`; other formats pass."""
+    suffix = path.suffix.lower()
+    if suffix not in {".ply", ".off"}:
+        return
+    size = path.stat().st_size
+    with path.open("rb") as fh:
+        head = fh.read(_HEADER_MAX_BYTES)
+    if suffix == ".ply":
+        body_bytes, needed = _ply_needs(head, size, path.name)
+    else:
+        body_bytes, needed = _off_needs(head, size, path.name)
+    for what, count, at_least in needed:
+        if count < 0 or count * at_least > body_bytes:
+            raise ModelFileError(
+                f"{path.name}: the header declares {count} {what}, which need at least "
+                f"{count * at_least} bytes, but the file holds {body_bytes} after its header"
+            )
+
+
+def _ply_needs(head: bytes, size: int, name: str) -> tuple[int, list[tuple[str, int, int]]]:
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise ModelFileError(f"{name}: not a PLY file with a complete header")
+    newline = head.find(b"\n", end)
+    body_bytes = size - (newline + 1 if newline >= 0 else len(head))
+    binary = False
+    needed: list[tuple[str, int, int]] = []
+    for raw in head[:end].decode("latin-1").splitlines():
+        words = raw.split()
+        if len(words) >= 2 and words[0] == "format":
+            binary = words[1].startswith("binary")
+        elif len(words) == 3 and words[0] == "element":
+            try:
+                count = int(words[2])
+            except ValueError:
+                raise ModelFileError(f"{name}: element {words[1]!r} has no count") from None
+            needed.append((f"{words[1]} elements", count, 0))
+        elif len(words) >= 3 and words[0] == "property" and needed:
+            what, count, at_least = needed[-1]
+            kind = words[2] if words[1] == "list" else words[1]
+            if kind not in _PLY_SCALAR_BYTES:
+                raise ModelFileError(f"{name}: unknown PLY property type {kind!r}")
+            at_least += _PLY_SCALAR_BYTES[kind] if binary else 2
+            needed[-1] = (what, count, at_least)
+    return body_bytes, needed
+
+
+def _off_needs(head: bytes, size: int, name: str) -> tuple[int, list[tuple[str, int, int]]]:
+    consumed = 0
+    words: list[bytes] = []
+    for line in head.split(b"\n")[:-1]:  # complete lines; comments and blanks may come first
+        consumed += len(line) + 1
+        words += line.split(b"#", 1)[0].split()
+        if words and words[0].endswith(b"OFF"):
+            words = words[1:]  # the keyword; the counts may follow on the same line
+        if len(words) >= 2:
+            break
+    try:
+        n_vertices, n_faces = int(words[0]), int(words[1])
+    except (IndexError, ValueError):
+        raise ModelFileError(f"{name}: an OFF header needs vertex and face counts") from None
+    # ASCII: a vertex is at least three numbers ("0 0 0\n"), a face at least its count
+    return size - consumed, [("vertices", n_vertices, 6), ("faces", n_faces, 2)]
+
+
+def _check_faces(mesh: o3d.geometry.TriangleMesh, name: str) -> None:
+    """Every face names vertices the mesh has (no index out of range)."""
+    faces = np.asarray(mesh.triangles)
+    n_vertices = len(mesh.vertices)
+    bad = faces[(faces < 0) | (faces >= n_vertices)]
+    if bad.size:
+        raise ModelFileError(
+            f"{name}: a face names vertex {int(bad[0])}, but the file has {n_vertices} "
+            f"vertices (0..{n_vertices - 1})"
+        )
+
+
 def _sha256(path: Path) -> str:
     h = hashlib.sha256()
     with path.open("rb") as f:
@@ -236,12 +335,15 @@ def load_surface(
         raise InputError(f"{path.name}: unsupported model format {suffix!r}")
     if not path.is_file() or path.stat().st_size == 0:
         raise InputError(f"{path.name}: file is missing or empty")
+    check_model_header(path)
     mesh: o3d.geometry.TriangleMesh | None = None
     if suffix in MESH_SUFFIXES:
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             mesh = o3d.io.read_triangle_mesh(path, True)
         if len(mesh.triangles) == 0:
             mesh = None
+        else:
+            _check_faces(mesh, path.name)
     if mesh is not None:
         mesh.scale(scale, center=np.zeros(3))
         v = np.asarray(mesh.vertices)

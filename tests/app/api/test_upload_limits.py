@@ -34,7 +34,7 @@ from tests.app.api.test_snapshots_upload import (
     upload,
     zip_bytes,
 )
-from tests.app.conftest import Keys
+from tests.app.conftest import Keys, SentTasks
 
 MB = 1024**2
 BOUNDARY = "twindeltaboundary"
@@ -402,3 +402,30 @@ def test_error_details_never_show_server_paths(
     members = dict(nested(capture()), **{"cap/a0.jpg": b"junk"})
     r = upload(client, keys, env_id, archive_part("c.zip", zip_bytes(members)))
     assert r.status_code == 422 and str(data_dir) not in r.json()["detail"], r.text
+
+
+def test_ply_declaring_more_vertices_than_it_holds_is_refused_at_upload(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks
+) -> None:
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 2000000000\n"
+        "property float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    body = header.encode() + b"\0" * 36
+    r = client.post(
+        "/v1/objects",
+        files={"file": ("bomb.ply", body, "application/octet-stream")},
+        data={"name": "drill"},
+        headers=keys.headers(),
+    )
+    assert (r.status_code, r.json()["error"]) == (422, "InvalidInput"), r.text
+    assert "2000000000 vertex elements" in r.json()["detail"]
+    assert sent_tasks.names() == []
+    honest = header.replace("2000000000", "3").encode() + b"\0" * 36
+    r = client.post(
+        "/v1/objects",
+        files={"file": ("ok.ply", honest, "application/octet-stream")},
+        data={"name": "drill"},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 202, r.text

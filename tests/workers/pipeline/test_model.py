@@ -13,8 +13,10 @@ from workers.pipeline.__main__ import main as pipeline_main
 from workers.pipeline.errors import InputError
 from workers.pipeline.model import (
     MODEL_PRESETS,
+    ModelFileError,
     ModelOptions,
     _texture_colors,
+    check_model_header,
     diameter_m,
     load_prepared,
     load_surface,
@@ -278,3 +280,59 @@ def test_explicit_symmetry_overrides_detection_and_cli_runs(tmp_path: Path) -> N
     assert (
         pipeline_main(["model", str(tmp_path / "missing.ply"), "--out", str(tmp_path / "x")]) == 2
     )
+
+
+# --- hostile model files: counts past the file's size, faces past the vertices ---------------
+
+
+def _ply(path: Path, header: str, body: bytes) -> Path:
+    path.write_bytes(header.encode() + body)
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+def test_ply_declaring_two_billion_vertices_is_a_clear_error(tmp_path: Path, fmt: str) -> None:
+    """A 1 kB file must not make the reader allocate for 2 × 10⁹ vertices (48 GB)."""
+    header = (
+        f"ply\nformat {fmt} 1.0\nelement vertex 2000000000\nproperty float x\n"
+        "property float y\nproperty float z\nelement face 1\n"
+        "property list uchar int vertex_indices\nend_header\n"
+    )
+    body = (
+        np.zeros((3, 3), "<f4").tobytes() + b"\x03" + np.arange(3, dtype="<i4").tobytes()
+        if fmt.startswith("binary")
+        else b"0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n"
+    )
+    path = _ply(tmp_path / "bomb.ply", header, body)
+    with pytest.raises(ModelFileError) as err:
+        load_surface(path, FAST)
+    assert err.value.code == "InvalidModelFile"
+    assert "2000000000 vertex elements" in err.value.detail
+    assert isinstance(err.value, InputError)
+
+
+def test_off_declaring_more_vertices_than_it_holds(tmp_path: Path) -> None:
+    path = tmp_path / "bomb.off"
+    path.write_bytes(b"OFF\n# comment\n2000000000 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(ModelFileError, match="2000000000 vertices"):
+        load_surface(path, FAST)
+
+
+def test_face_naming_a_missing_vertex_is_a_clear_error(tmp_path: Path) -> None:
+    header = (
+        "ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        "property float z\nelement face 1\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    path = _ply(tmp_path / "bad.ply", header, b"0 0 0\n1 0 0\n0 1 0\n3 0 1 7\n")
+    with pytest.raises(ModelFileError) as err:
+        load_surface(path, FAST)
+    assert err.value.code == "InvalidModelFile"
+    assert "vertex 7" in err.value.detail and "3 vertices" in err.value.detail
+
+
+def test_header_check_passes_honest_files(tmp_path: Path) -> None:
+    for suffix in (".ply", ".off"):
+        path = _box_mesh(tmp_path / f"box{suffix}", (0.1, 0.2, 0.3))
+        check_model_header(path)  # no error
+        points, _, _ = load_surface(path, FAST)
+        assert len(points) > 0

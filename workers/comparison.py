@@ -1,6 +1,7 @@
 """The comparison job: change detection and identification between two snapshots, a pose
 for every identified object that appeared, a re-projection check of each pose, then the
-result, the twin's state and the ``comparison.completed`` event in one transaction."""
+result, the ``comparison.completed`` event and, for an automatic comparison, the twin's
+update (app.core.twin.advance, in seq order) in one transaction."""
 
 from __future__ import annotations
 
@@ -192,6 +193,7 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
     comparison.clusters = [{**row, "boxes": boxes.get(row["id"], {})} for row in data["clusters"]]
     comparison.options = {**comparison.options, "resolved": data["options"]}
     comparison.completed_at = utcnow()
+    object_ids = {name: object_id for name, (object_id, _, _) in inputs.models.items()}
     for position, change in enumerate(outcome.changes):
         comparison.changes.append(
             Change(
@@ -199,10 +201,13 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
                 position=position,
                 type=change["type"],
                 object_name=change.get("object"),
+                object_id=object_ids.get(str(change.get("object"))),
                 instance_id=change.get("instance_id"),
                 pose=change.get("pose"),
                 previous_pose=change.get("previous_pose"),
                 replaced_object=change.get("replaced_object"),
+                replaced_instance_id=change.get("replaced_instance_id"),
+                centroid_env=change.get("centroid_env"),
                 identification=change.get("identification"),
                 cluster=change["cluster"],
                 pose_quality=change.get("pose_quality"),
@@ -210,16 +215,6 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
         )
     jobs.get(session, ctx.job.id).result = {"stats": data.get("stats", {})}
     session.flush()
-    if comparison.automatic and not comparison.applied_to_state:
-        twin.apply_changes(
-            session,
-            inputs.environment_id,
-            comparison.after_id,
-            comparison.id,
-            outcome.changes,
-            {name: object_id for name, (object_id, _, _) in inputs.models.items()},
-        )
-        comparison.applied_to_state = True
     events.record(
         session,
         EventType.comparison_completed,
@@ -249,6 +244,10 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
             "links": {"comparison": f"/v1/comparisons/{comparison.id}"},
         },
     )
+    if comparison.automatic:
+        # applied to the twin when its turn comes (every earlier snapshot applied or
+        # skipped): now, or by whichever later transaction makes it due
+        twin.advance(session, inputs.environment_id)
 
 
 def _histogram(distances_m: Any, threshold_m: float, bins: int = 60) -> dict[str, Any]:

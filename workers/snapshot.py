@@ -1,6 +1,7 @@
 """The snapshot job: re-read the upload (image sizes, detections) → reconstruct the cloud
-in the environment frame → record quality → start the automatic comparison with the newest
-earlier reconstructed snapshot."""
+in the environment frame → record quality → move the twin's chain on (app.core.twin.advance:
+the automatic comparison with the newest earlier reconstructed snapshot, once every earlier
+snapshot is settled)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Any
 
 from sqlalchemy.orm import Session
 
-from app.core import comparisons, environments, events, ingest, snapshots
+from app.core import environments, events, ingest, snapshots, twin
 from app.core.db import transaction
 from app.core.enums import EventType, SnapshotState
 from app.core.models import utcnow
@@ -128,14 +129,5 @@ def _persist(
             "links": {"pointcloud": f"/v1/snapshots/{snap.id}/pointcloud"},
         },
     )
-    earlier = snapshots.latest_reconstructed_before(session, snap)
-    if earlier is not None:
-        env = environments.get(session, snap.environment_id)
-        comparisons.create(
-            session,
-            snap.environment_id,
-            earlier,
-            snap,
-            dict(env.options.get("compare", {})),
-            automatic=True,
-        )
+    # the automatic comparison starts when every earlier snapshot is settled (seq order)
+    twin.advance(session, snap.environment_id)

@@ -54,6 +54,23 @@ class ComparisonState(StrEnum):
     cancelled = "cancelled"
 
 
+class TwinUpdate(StrEnum):
+    """What the twin made of a snapshot, in seq order."""
+
+    baseline = "baseline"  # the first reconstructed snapshot: nothing to compare it with
+    applied = "applied"  # its automatic comparison's changes are in the twin
+    skipped = "skipped"  # it failed or was cancelled before reconstructing
+
+
+class TwinStatus(StrEnum):
+    """Where an environment's twin stands against its snapshots."""
+
+    current = "current"  # every snapshot is applied or skipped
+    reconstructing = "reconstructing"  # waiting for the next snapshot to reconstruct
+    comparing = "comparing"  # the next snapshot's automatic comparison is queued or running
+    blocked = "blocked"  # that comparison failed or was cancelled: retry it to go on
+
+
 class ChangeType(StrEnum):
     added = "added"
     removed = "removed"
@@ -65,6 +82,8 @@ class ChangeType(StrEnum):
 class EventType(StrEnum):
     snapshot_reconstructed = "snapshot.reconstructed"
     comparison_completed = "comparison.completed"
+    twin_updated = "twin.updated"
+    twin_blocked = "twin.blocked"
     job_failed = "job.failed"
     job_cancelled = "job.cancelled"
 

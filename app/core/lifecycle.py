@@ -23,8 +23,15 @@ from typing import Any
 from sqlalchemy.exc import DBAPIError, OperationalError
 from sqlalchemy.orm import Session
 
-from app.core import events
-from app.core.enums import ComparisonState, EventType, JobState, ObjectState, SnapshotState
+from app.core import events, twin
+from app.core.enums import (
+    ComparisonState,
+    EventType,
+    JobKind,
+    JobState,
+    ObjectState,
+    SnapshotState,
+)
 from app.core.models import Comparison, Job, LibraryObject, Snapshot
 
 log = logging.getLogger(__name__)
@@ -56,6 +63,16 @@ def settle(session: Session, job: Job) -> None:
         subject=f"jobs/{job.id}",
         data=_event_data(job),
     )
+    if job.environment_id is not None and job.kind in (JobKind.snapshot, JobKind.comparison):
+        # the twin's chain (app.core.twin): a failed snapshot is skipped and the next one
+        # compared; a failed automatic comparison holds the twin, announced as twin.blocked
+        try:
+            with session.begin_nested():
+                twin.advance(session, job.environment_id)
+        except Exception as exc:
+            if connection_lost(exc):
+                raise
+            log.exception("job %s: could not move the twin of %s on", job.id, job.environment_id)
 
 
 def _end_subject(session: Session, job: Job, state: JobState) -> None:

@@ -13,6 +13,7 @@ from app.api.schemas.environments import (
     InstanceHistory,
     InstanceRead,
     PoseRecord,
+    TwinProgressRead,
     TwinStateRead,
 )
 from app.api.schemas.snapshots import SnapshotRead
@@ -27,14 +28,14 @@ def create_environment(
 ) -> EnvironmentRead:
     """Create an environment with its detector classes and reference-marker sheet."""
     env = environments.create(session, body.name, body.classes, body.reference, body.options)
-    return EnvironmentRead.model_validate(env)
+    return EnvironmentRead.of(env, twin.progress(session, env))
 
 
 @router.get("")
 def list_environments(session: SessionDep, key: ReadKey) -> list[EnvironmentRead]:
     """Every environment the key reaches."""
     return [
-        EnvironmentRead.model_validate(e)
+        EnvironmentRead.of(e, twin.progress(session, e))
         for e in environments.list_all(session)
         if auth.can_reach(key, e.id)
     ]
@@ -44,7 +45,8 @@ def list_environments(session: SessionDep, key: ReadKey) -> list[EnvironmentRead
 def get_environment(environment_id: str, session: SessionDep, key: ReadKey) -> EnvironmentRead:
     """One environment."""
     auth.require_environment(key, environment_id)
-    return EnvironmentRead.model_validate(environments.get(session, environment_id))
+    env = environments.get(session, environment_id)
+    return EnvironmentRead.of(env, twin.progress(session, env))
 
 
 @router.get("/{environment_id}/snapshots")
@@ -96,7 +98,7 @@ def list_comparisons(
 def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinStateRead:
     """The twin as it stands: every instance present, with its current pose."""
     auth.require_environment(key, environment_id)
-    environments.get(session, environment_id)
+    env = environments.get(session, environment_id)
     return TwinStateRead(
         environment=environment_id,
         objects=[
@@ -114,6 +116,7 @@ def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinSta
         ],
     )
 
+        twin=TwinProgressRead.of(twin.progress(session, env)),
 
 @router.get("/{environment_id}/objects/{instance_id}/history")
 def get_instance_history(

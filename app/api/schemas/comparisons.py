@@ -29,6 +29,8 @@ class ChangeRead(Model):
     pose: Pose | None
     previous_pose: Pose | None
     replaced_object: str | None
+    replaced_instance_id: str | None = None
+    centroid_env: list[float] | None = None
     identification: dict[str, Any] | None
     cluster: dict[str, Any] | None
     pose_quality: dict[str, Any] | None
@@ -42,6 +44,11 @@ class ComparisonRead(BaseModel):
     job: str
     state: ComparisonState
     automatic: bool
+    applied_to_twin: bool = Field(
+        description="its changes are in the twin (automatic comparisons only, applied in "
+        "snapshot seq order)"
+    )
+    applied_at: datetime | None
     created_at: datetime
     completed_at: datetime | None
     options: dict[str, Any]
@@ -59,6 +66,8 @@ class ComparisonRead(BaseModel):
             job=c.job_id,
             state=c.state,
             automatic=c.automatic,
+            applied_to_twin=bool(c.applied_to_state),
+            applied_at=c.applied_at,
             created_at=c.created_at,
             completed_at=c.completed_at,
             options=c.options,
@@ -72,6 +81,8 @@ class ComparisonRead(BaseModel):
                     pose=ch.pose,
                     previous_pose=ch.previous_pose,
                     replaced_object=ch.replaced_object,
+                    replaced_instance_id=ch.replaced_instance_id,
+                    centroid_env=ch.centroid_env,
                     identification=ch.identification,
                     cluster=ch.cluster,
                     pose_quality=ch.pose_quality,

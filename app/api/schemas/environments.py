@@ -6,6 +6,9 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from app.api.schemas.common import Model, Pose
+from app.core.enums import TwinStatus
+from app.core.models import Environment
+from app.core.twin import Progress
 
 
 class EnvironmentCreate(BaseModel):
@@ -26,6 +29,37 @@ class EnvironmentCreate(BaseModel):
     )
 
 
+class TwinProgressRead(BaseModel):
+    """Where the twin stands against the environment's snapshots: it is brought forward one
+    snapshot at a time in ``seq`` order."""
+
+    seq: int = Field(
+        description="the newest snapshot seq the twin took into account (applied or "
+        "skipped); 0 before any"
+    )
+    snapshot: str | None = Field(
+        description="the newest snapshot whose changes the twin reflects (the 'before' of "
+        "the next automatic comparison)"
+    )
+    status: TwinStatus = Field(
+        description="current: every snapshot is in; reconstructing: the next snapshot is "
+        "not reconstructed yet; comparing: its automatic comparison is queued or running; "
+        "blocked: that comparison failed or was cancelled: POST /v1/comparisons/{id}/retry"
+    )
+    waiting_for: str | None = Field(description="the next snapshot in seq order, if any")
+    comparison: str | None = Field(description="that snapshot's automatic comparison, once made")
+
+    @classmethod
+    def of(cls, progress: Progress) -> TwinProgressRead:
+        return cls(
+            seq=progress.seq,
+            snapshot=progress.snapshot_id,
+            status=progress.status,
+            waiting_for=progress.waiting_for,
+            comparison=progress.comparison_id,
+        )
+
+
 class EnvironmentRead(Model):
     id: str
     name: str
@@ -33,6 +67,19 @@ class EnvironmentRead(Model):
     reference: dict[str, Any] | None
     options: dict[str, Any]
     created_at: datetime
+    twin: TwinProgressRead
+
+    @classmethod
+    def of(cls, env: Environment, progress: Progress) -> EnvironmentRead:
+        return cls(
+            id=env.id,
+            name=env.name,
+            classes=env.classes,
+            reference=env.reference,
+            options=env.options,
+            created_at=env.created_at,
+            twin=TwinProgressRead.of(progress),
+        )
 
 
 class InstanceRead(BaseModel):
@@ -49,6 +96,7 @@ class InstanceRead(BaseModel):
 class TwinStateRead(BaseModel):
     environment: str
     objects: list[InstanceRead]
+    twin: TwinProgressRead = Field(description="which snapshot this state reflects")
 
 
 class PoseRecord(BaseModel):

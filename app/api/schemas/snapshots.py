@@ -7,7 +7,7 @@ from pydantic import BaseModel
 
 from app.api.schemas.common import Model
 from app.api.schemas.jobs import JobRead
-from app.core.enums import SnapshotState
+from app.core.enums import SnapshotState, TwinUpdate
 from app.core.models import Comparison, Job, Snapshot
 
 
@@ -25,6 +25,7 @@ class SnapshotRead(Model):
     quality: dict[str, Any]
     job: str | None
     comparison: str | None
+    twin_update: TwinUpdate | None = None  # baseline | applied | skipped; None until its turn
     links: dict[str, str]
 
     @classmethod
@@ -50,6 +51,7 @@ class SnapshotRead(Model):
             quality=snap.quality or {},
             job=job.id if job else None,
             comparison=comparison.id if comparison else None,
+            twin_update=TwinUpdate(snap.twin_update) if snap.twin_update else None,
             links=links,
         )
 

@@ -35,7 +35,9 @@ def test_create_and_read(client: TestClient, keys: Keys) -> None:
         r = client.get(f"/v1/environments/{env['id']}/{path}", headers=keys.headers("read"))
         assert r.status_code == 200 and r.json() == []
     state = client.get(f"/v1/environments/{env['id']}/state", headers=keys.headers("read"))
-    assert state.json() == {"environment": env["id"], "objects": []}
+    twin = {"seq": 0, "snapshot": None, "status": "current", "waiting_for": None}
+    twin["comparison"] = None
+    assert state.json() == {"environment": env["id"], "objects": [], "twin": twin}
 
 
 def test_auth_missing_wrong_and_scope(client: TestClient, keys: Keys) -> None:

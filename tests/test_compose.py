@@ -103,6 +103,7 @@ def test_compose_uses_the_given_passwords_everywhere(tmp_path: Path) -> None:
         assert f":{GOOD['POSTGRES_PASSWORD']}@postgres:5432/" in env["TWINDELTA_DATABASE_URL"]
         assert env["TWINDELTA_BROKER_URL"] == f"redis://:{GOOD['REDIS_PASSWORD']}@redis:6379/0"
         assert env["TWINDELTA_SECRET_KEY"] == GOOD["TWINDELTA_SECRET_KEY"]
+        assert env["TWINDELTA_RETENTION_KEEP_LAST_SNAPSHOTS"] == "0"  # off unless set
 
 
 def test_compose_services_have_memory_limits(tmp_path: Path) -> None:

@@ -34,6 +34,7 @@ TASK_QUEUES: dict[str, str] = {
     "webhooks.deliver": WEBHOOKS_QUEUE,
     "webhooks.dispatch": MAINTENANCE_QUEUE,
     "maintenance.sweep": MAINTENANCE_QUEUE,
+    "maintenance.retention": MAINTENANCE_QUEUE,
 }
 _PENDING = "twindelta_pending_tasks"
 
@@ -74,6 +75,10 @@ def celery_config(settings: Settings) -> dict[str, Any]:
         "timezone": "UTC",
         "beat_schedule": {
             "sweep": {"task": "maintenance.sweep", "schedule": settings.sweep_interval_s},
+            "retention": {
+                "task": "maintenance.retention",
+                "schedule": settings.retention_interval_s,
+            },
             "webhooks-dispatch": {
                 "task": "webhooks.dispatch",
                 "schedule": webhook_dispatch_interval_s(settings),

@@ -39,6 +39,7 @@ from typing import Any
 from sqlalchemy import delete, event, or_, select, update
 from sqlalchemy.orm import Session
 
+from app.core import ingest
 from app.core.enums import JobKind, JobState, SnapshotState
 from app.core.errors import Conflict, NotFound
 from app.core.models import (
@@ -362,8 +363,9 @@ def cleanup_files(
 
     - ``.work/<job>`` folders of jobs that are final or unknown (a worker killed before it
       cleaned up; queued and running jobs keep theirs, a requeued job resumes from it);
-    - upload staging (``.tmp/<id>``) and half-written ``*.part`` files untouched for
-      ``max_age_s`` (a killed upload; live uploads keep writing to theirs);
+    - upload staging (``.tmp/<id>``) whose process is gone (:func:`ingest.sweep_staging`:
+      its lock is free, or it has none and is an hour old), and half-written ``*.part``
+      files untouched for ``max_age_s``;
     - ``snapshots/<id>`` folders whose snapshot is deleted, and those with no row at all
       once older than ``max_age_s`` (an upload killed between storing and committing);
       photos of snapshots whose photos retention already deleted;
@@ -381,10 +383,7 @@ def cleanup_files(
             if state is None or JobState(state).is_final:
                 shutil.rmtree(work / name, ignore_errors=True)
                 counts["work"] += 1
-    for name in _children(storage.root / ".tmp"):
-        if _idle_s(storage.root / ".tmp" / name, now) > max_age_s:
-            shutil.rmtree(storage.root / ".tmp" / name, ignore_errors=True)
-            counts["staging"] += 1
+    counts["staging"] = ingest.sweep_staging(storage)
     _cleanup_snapshot_folders(session, storage, max_age_s, now, counts)
     objects_dir = storage.root / "objects"
     names = _children(objects_dir)

@@ -14,7 +14,7 @@ import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import queue, retention, snapshots
+from app.core import queue, retention, snapshots, webhooks
 from app.core.enums import ComparisonState, JobKind, JobState, SnapshotState
 from app.core.errors import Conflict, NotFound
 from app.core.models import (
@@ -164,10 +164,14 @@ def history(session_factory: sessionmaker[Session], storage: LocalStorage) -> Hi
             ]
         )
         event = Event(type="snapshot.reconstructed", environment_id=env.id, data={})
-        subscription = WebhookSubscription(
-            url="https://twin.example/hook", event_types=["*"], environment_id=env.id, secret="s"
+        s.add(event)
+        subscription = webhooks.create_subscription(
+            s,
+            get_settings(),
+            url="https://8.8.8.8/hook",
+            event_types=None,
+            environment_id=env.id,
         )
-        s.add_all([event, subscription])
         s.flush()
         s.add(Delivery(subscription_id=subscription.id, event_id=event.id, ordering_key="k"))
         other_snap = _snapshot(s, storage, other.id, 1, 30)

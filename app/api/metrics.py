@@ -22,8 +22,10 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.api.deps import MetricsKey
 from app.api.schemas.common import ERRORS
+from app.core import retention
 from app.core.db import get_read_session_factory
 from app.core.models import Job
+from app.core.settings import get_settings
 
 REGISTRY = CollectorRegistry()
 REQUESTS = Counter(
@@ -72,7 +74,28 @@ class JobCollector(Collector):
         yield durations
 
 
+class StorageCollector(Collector):
+    """Size, used and free bytes of the file system holding the storage folder, so an alert
+    can fire before uploads and reconstructions fail for want of disk (see retention)."""
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        root = get_settings().resolved_storage_dir
+        while not root.exists() and root != root.parent:  # not created yet: its file system
+            root = root.parent
+        try:
+            usage = retention.disk_usage(root)
+        except OSError:
+            return
+        for name, text, value in (
+            ("twindelta_storage_size_bytes", "Storage file system size", usage.total_bytes),
+            ("twindelta_storage_used_bytes", "Storage file system bytes used", usage.used_bytes),
+            ("twindelta_storage_free_bytes", "Storage file system bytes free", usage.free_bytes),
+        ):
+            yield GaugeMetricFamily(name, text, value=float(value))
+
+
 REGISTRY.register(JobCollector())
+REGISTRY.register(StorageCollector())
 router = APIRouter(tags=["health"])
 
 

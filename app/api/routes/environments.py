@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from app.api.deps import AdminKey, ReadKey, SessionDep
-from app.api.schemas.common import ERRORS
+from app.api.deps import AdminKey, ReadKey, SessionDep, StorageDep
+from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.comparisons import ComparisonCreate, ComparisonRead
 from app.api.schemas.environments import (
     EnvironmentCreate,
@@ -17,7 +17,7 @@ from app.api.schemas.environments import (
     TwinStateRead,
 )
 from app.api.schemas.snapshots import SnapshotRead
-from app.core import auth, comparisons, environments, snapshots, twin
+from app.core import auth, comparisons, environments, retention, snapshots, twin
 
 router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
 
@@ -47,6 +47,21 @@ def get_environment(environment_id: str, session: SessionDep, key: ReadKey) -> E
     auth.require_environment(key, environment_id)
     env = environments.get(session, environment_id)
     return EnvironmentRead.of(env, twin.progress(session, env))
+
+
+@router.delete(
+    "/{environment_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={409: {"model": ErrorOut, "description": "a job of it is queued or running"}},
+)
+def delete_environment(
+    environment_id: str, session: SessionDep, storage: StorageDep, key: AdminKey
+) -> Response:
+    """Delete the environment with its snapshots, files, comparisons, twin and webhooks
+    (204; 409 JobsActive while any of its jobs is queued or running)."""
+    auth.require_environment(key, environment_id)
+    retention.delete_environment(session, storage, environment_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.get("/{environment_id}/snapshots")

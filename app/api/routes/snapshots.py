@@ -7,11 +7,11 @@ from typing import Annotated
 from fastapi import APIRouter, File, Header, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 
-from app.api.deps import CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
+from app.api.deps import AdminKey, CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
-from app.core import auth, ingest, snapshots
+from app.core import auth, ingest, retention, snapshots
 from app.core.db import get_read_session_factory
 from app.core.errors import Conflict
 
@@ -88,6 +88,28 @@ def get_snapshot(snapshot_id: str, session: SessionDep, key: ReadKey) -> Snapsho
         snapshots.job_of(session, snap.id),
         snapshots.automatic_comparison_of(session, snap.id),
     )
+
+
+@router.delete(
+    "/snapshots/{snapshot_id}",
+    status_code=status.HTTP_204_NO_CONTENT,
+    responses={
+        409: {
+            "model": ErrorOut,
+            "description": "a job using it is queued or running (JobsActive), or it is the "
+            "environment's newest reconstructed snapshot (SnapshotInUse)",
+        }
+    },
+)
+def delete_snapshot(
+    snapshot_id: str, session: SessionDep, storage: StorageDep, key: AdminKey
+) -> Response:
+    """Delete the snapshot's files, images, jobs and the comparisons it took part in; the
+    twin's history keeps its poses (204; see docs/operations.md)."""
+    snap = snapshots.get(session, snapshot_id)
+    auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
+    retention.delete_snapshot(session, storage, snapshot_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
 @router.get(

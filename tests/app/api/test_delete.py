@@ -1,0 +1,124 @@
+"""DELETE /v1/snapshots/{id} and DELETE /v1/environments/{id} over HTTP: 204 and the files
+gone, 404 for unknown or already deleted, 409 while a job uses it or for the environment's
+newest reconstructed snapshot, 403 without the admin scope."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from fastapi.testclient import TestClient
+from sqlalchemy.orm import Session, sessionmaker
+
+from app.core.enums import JobState, SnapshotState
+from app.core.models import Job, Snapshot
+from app.core.settings import get_settings
+from tests.app.api.test_snapshots_upload import as_parts, capture
+from tests.app.conftest import Keys
+
+
+def _environment(client: TestClient, keys: Keys, name: str = "line-9") -> str:
+    r = client.post(
+        "/v1/environments",
+        json={"name": name, "classes": ["power_drill", "bowl"]},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 201, r.text
+    return str(r.json()["id"])
+
+
+def _upload(client: TestClient, keys: Keys, env_id: str) -> dict[str, Any]:
+    r = client.post(
+        f"/v1/environments/{env_id}/snapshots",
+        files=as_parts(capture()),
+        headers=keys.headers("capture"),
+    )
+    assert r.status_code == 202, r.text
+    body: dict[str, Any] = r.json()
+    return body
+
+
+def _finish(
+    factory: sessionmaker[Session], job_id: str, snapshot_id: str, state: SnapshotState
+) -> None:
+    """What the worker would have written: the job final and the snapshot's outcome."""
+    with factory.begin() as s:
+        s.get_one(Job, job_id).state = JobState.succeeded
+        snap = s.get_one(Snapshot, snapshot_id)
+        snap.state = state
+        if state == SnapshotState.reconstructed:
+            snap.pointcloud_key = f"{snap.storage_prefix}/reconstruction/cloud.ply"
+
+
+def _files(snapshot_id: str) -> Path:
+    return get_settings().resolved_storage_dir / "snapshots" / snapshot_id
+
+
+def test_delete_snapshot(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session]
+) -> None:
+    env_id = _environment(client, keys)
+    first = _upload(client, keys, env_id)
+    snap_id, job_id = first["snapshot"]["id"], first["job"]["id"]
+    assert (_files(snap_id) / "images").is_dir()
+    url = f"/v1/snapshots/{snap_id}"
+
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 409 and r.json()["error"] == "JobsActive"
+    assert job_id in r.json()["detail"]
+    assert client.delete(url, headers=keys.headers("read")).status_code == 403
+    assert client.delete(url, headers=keys.headers("capture")).status_code == 403
+
+    # reconstructed and the newest: the twin stands at it
+    _finish(session_factory, job_id, snap_id, SnapshotState.reconstructed)
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 409 and r.json()["error"] == "SnapshotInUse"
+
+    # a newer reconstructed snapshot: the first one may go
+    second = _upload(client, keys, env_id)
+    _finish(
+        session_factory,
+        second["job"]["id"],
+        second["snapshot"]["id"],
+        SnapshotState.reconstructed,
+    )
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 204 and r.content == b""
+    assert not _files(snap_id).exists()
+    assert (_files(second["snapshot"]["id"]) / "images").is_dir()
+    assert client.get(url, headers=keys.headers("read")).status_code == 404
+    assert client.get(f"/v1/jobs/{job_id}", headers=keys.headers("read")).status_code == 404
+    listed = client.get(f"/v1/environments/{env_id}/snapshots", headers=keys.headers("read"))
+    assert [s["id"] for s in listed.json()] == [second["snapshot"]["id"]]
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 404 and r.json()["error"] == "NotFound"
+    assert client.delete("/v1/snapshots/nope", headers=keys.headers()).status_code == 404
+
+
+def test_delete_environment(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session]
+) -> None:
+    env_id = _environment(client, keys)
+    other_id = _environment(client, keys, "line-10")
+    upload = _upload(client, keys, env_id)
+    kept = _upload(client, keys, other_id)
+    url = f"/v1/environments/{env_id}"
+
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 409 and r.json()["error"] == "JobsActive"
+    assert client.delete(url, headers=keys.headers("read")).status_code == 403
+
+    _finish(session_factory, upload["job"]["id"], upload["snapshot"]["id"], SnapshotState.failed)
+    r = client.delete(url, headers=keys.headers())
+    assert r.status_code == 204 and r.content == b""
+    assert not _files(upload["snapshot"]["id"]).exists()
+    assert client.get(url, headers=keys.headers("read")).status_code == 404
+    r = client.get(f"/v1/snapshots/{upload['snapshot']['id']}", headers=keys.headers("read"))
+    assert r.status_code == 404
+    assert client.delete(url, headers=keys.headers()).status_code == 404
+    # the other environment is untouched
+    assert (_files(kept["snapshot"]["id"]) / "images").is_dir()
+    r = client.get(f"/v1/environments/{other_id}/snapshots", headers=keys.headers("read"))
+    assert [s["id"] for s in r.json()] == [kept["snapshot"]["id"]]
+    # the name is free again
+    assert _environment(client, keys) != env_id

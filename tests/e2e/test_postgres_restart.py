@@ -5,7 +5,8 @@ on a free port, in a temporary folder owned by the ``postgres`` user when the su
 root), so restarting it disturbs no other test. The job is the real object job
 (``workers.objects``: its own database read, ``prepare_model``, its own persist) run by the
 production runner, with one extra stage in front that reports progress as often as a
-reconstruction does, so the restart lands on progress writes.
+reconstruction does, so the restart lands on progress writes: once in this process, once in
+the production processes (API, Celery worker and beat on a private Redis).
 """
 
 from __future__ import annotations
@@ -18,11 +19,12 @@ import subprocess
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import httpx
 import open3d as o3d
 import pytest
 from sqlalchemy import create_engine, select, text
@@ -36,9 +38,9 @@ from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from bench.client import free_port
 from tests.app.conftest import migrate
-from tests.e2e.conftest import wait_until
+from tests.e2e.conftest import Processes, RedisServer, api_client, wait_until
 
-pytestmark = [pytest.mark.e2e, pytest.mark.postgres]
+pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 
 def pg_bin() -> Path:
@@ -220,3 +222,69 @@ def test_postgres_restart_mid_job_finishes_exactly_once(
         assert s.scalars(select(Job.id).where(Job.object_id == object_id)).all() == [job_id]
         assert s.scalars(select(Event.type)).all() == []  # no job.failed
     assert worker_settings == []  # never requeued: nothing sent again
+
+
+def test_postgres_restart_mid_job_in_the_service_processes(
+    private_postgres: PostgresServer,
+    redis_server: RedisServer,
+    processes: Callable[..., Processes],
+    tmp_path: Path,
+) -> None:
+    """The same fault with real processes: the API, a Celery worker (its object jobs slowed
+    by :mod:`tests.e2e.slow_jobs`) and beat with the sweeper, all on the private server."""
+    procs = processes(
+        database_url=private_postgres.url, broker_url=redis_server.url, test_slow_stage_s="8"
+    )
+    port = free_port()
+    procs.api(port)
+    procs.worker("cpu", "cpu", "--include", "tests.e2e.slow_jobs")
+    procs.worker("beat", "webhooks", "-B", "-s", str(tmp_path / "beat-schedule"))
+    client = api_client(port)
+    mesh = tmp_path / "torus.ply"
+    o3d.io.write_triangle_mesh(str(mesh), o3d.geometry.TriangleMesh.create_torus(0.2, 0.05))
+    r = client.post(
+        "/v1/objects", files={"file": ("torus.ply", mesh.read_bytes())}, data={"name": "torus"}
+    )
+    assert r.status_code == 202, r.text
+    object_id, job_id = r.json()["id"], r.json()["job"]["id"]
+
+    last: dict[str, Any] = {}
+
+    def job_is(check: Callable[[dict[str, Any]], bool]) -> Callable[[], bool]:
+        def poll() -> bool:
+            nonlocal last
+            try:
+                answer = client.get(f"/v1/jobs/{job_id}")
+            except httpx.TransportError:
+                return False
+            if answer.status_code != 200:  # the API's database is restarting too
+                return False
+            last = answer.json()
+            return check(last)
+
+        return poll
+
+    wait_until(job_is(lambda j: j["stage"] == "warmup"), 60, "the job's first stage")
+    private_postgres.stop()
+    time.sleep(1.0)
+    private_postgres.start()
+    wait_until(job_is(lambda j: j["state"] == "running"), 30, "the API to answer again")
+    wait_until(
+        job_is(lambda j: j["state"] in {"succeeded", "failed", "cancelled"}),
+        90,
+        f"job {job_id} to finish",
+    )
+    assert last["state"] == "succeeded", last
+    assert last["attempts"] == 1 and last["error"] is None
+    prepared = client.get(f"/v1/objects/{object_id}").json()
+    assert prepared["state"] == "ready"
+    assert prepared["diameter_m"] == pytest.approx(0.5, abs=0.01)
+    worker_log = (tmp_path / "cpu.log").read_text(errors="replace")
+    assert "not written" in worker_log, "no progress write met the restart"
+    engine = create_engine(private_postgres.url)
+    try:
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT count(*) FROM jobs")).scalar() == 1
+            assert conn.execute(text("SELECT count(*) FROM events")).scalar() == 0
+    finally:
+        engine.dispose()

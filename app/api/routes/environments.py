@@ -116,6 +116,7 @@ def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinSta
     env = environments.get(session, environment_id)
     return TwinStateRead(
         environment=environment_id,
+        twin=TwinProgressRead.of(twin.progress(session, env)),
         objects=[
             InstanceRead(
                 instance_id=i.id,
@@ -131,7 +132,6 @@ def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinSta
         ],
     )
 
-        twin=TwinProgressRead.of(twin.progress(session, env)),
 
 @router.get("/{environment_id}/objects/{instance_id}/history")
 def get_instance_history(

@@ -39,7 +39,7 @@ from typing import Any
 from sqlalchemy import delete, event, or_, select, update
 from sqlalchemy.orm import Session
 
-from app.core import ingest
+from app.core import ingest, twin
 from app.core.enums import JobKind, JobState, SnapshotState
 from app.core.errors import Conflict, NotFound
 from app.core.models import (
@@ -121,7 +121,7 @@ def jobs_using(session: Session, snap: Snapshot) -> list[str]:
 
 
 def newest_reconstructed(session: Session, environment_id: str) -> Snapshot | None:
-    """The snapshot the twin stands at and the next capture is compared with."""
+    """The newest reconstructed snapshot of an environment."""
     return session.scalar(
         select(Snapshot)
         .where(
@@ -131,6 +131,19 @@ def newest_reconstructed(session: Session, environment_id: str) -> Snapshot | No
         .order_by(Snapshot.seq.desc())
         .limit(1)
     )
+
+
+def protected(session: Session, environment_id: str) -> set[str]:
+    """Snapshots that are never deleted one by one: the one the twin stands at (the
+    "before" of its next comparison, ``Environment.twin_snapshot_id``) and the newest
+    reconstructed one (the twin is at it, or is on its way to it)."""
+    env = session.get(Environment, environment_id)
+    newest = newest_reconstructed(session, environment_id)
+    return {
+        snapshot_id
+        for snapshot_id in (env.twin_snapshot_id if env else None, newest.id if newest else None)
+        if snapshot_id is not None
+    }
 
 
 def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -> Snapshot:
@@ -147,11 +160,10 @@ def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -
             f"({', '.join(sorted(busy)[:5])}); cancel them or wait",
             code="JobsActive",
         )
-    newest = newest_reconstructed(session, snap.environment_id)
-    if newest is not None and newest.id == snap.id:
+    if snap.id in protected(session, snap.environment_id):
         raise Conflict(
-            f"snapshot {snapshot_id} is the newest reconstructed snapshot of its environment: "
-            "the twin stands at it and the next capture is compared with it",
+            f"snapshot {snapshot_id} is the twin's current snapshot or the newest "
+            "reconstructed one of its environment: the next capture is compared with it",
             code="SnapshotInUse",
         )
     _delete_snapshot_rows(session, [snap.id])
@@ -165,6 +177,7 @@ def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -
     snap.images_deleted_at = snap.images_deleted_at or now
     session.flush()
     delete_after_commit(session, storage, snap.storage_prefix)
+    twin.advance(session, snap.environment_id)  # the chain skips it if it had not reached it
     return snap
 
 
@@ -303,20 +316,24 @@ def apply_policy(
 
 
 def _keep_last(session: Session, storage: LocalStorage, keep: int, counts: dict[str, int]) -> None:
-    for environment_id in session.scalars(select(Environment.id)).all():
+    """Beyond the ``keep`` newest snapshots of each environment, delete those that are final
+    and that the twin has already taken into account (``seq <= twin_seq``: a snapshot the
+    chain has not reached yet is never dropped unseen), except the protected ones."""
+    for env in session.scalars(select(Environment)).all():
         live = session.scalars(
             select(Snapshot)
-            .where(
-                Snapshot.environment_id == environment_id,
-                Snapshot.state != SnapshotState.deleted,
-            )
+            .where(Snapshot.environment_id == env.id, Snapshot.state != SnapshotState.deleted)
             .order_by(Snapshot.seq.desc())
         ).all()
-        newest = newest_reconstructed(session, environment_id)
+        keep_ids = protected(session, env.id)
         for snap in live[keep:]:
             if counts["snapshots_deleted"] >= MAX_DELETIONS_PER_RUN:
                 return
-            if snap.state not in FINAL_SNAPSHOT_STATES or (newest and newest.id == snap.id):
+            if (
+                snap.state not in FINAL_SNAPSHOT_STATES
+                or snap.id in keep_ids
+                or snap.seq > (env.twin_seq or 0)
+            ):
                 continue
             try:
                 delete_snapshot(session, storage, snap.id)

@@ -136,6 +136,7 @@ def history(session_factory: sessionmaker[Session], storage: LocalStorage) -> Hi
         ]
         c12, j12 = _comparison(s, env.id, snaps[0], snaps[1])
         c23, j23 = _comparison(s, env.id, snaps[1], snaps[2])
+        env.twin_seq, env.twin_snapshot_id = 3, snaps[2]  # the twin took all three in
         instance = TwinInstance(
             environment_id=env.id,
             object_name="bowl",
@@ -243,6 +244,26 @@ def test_newest_reconstructed_snapshot_is_never_deleted(
         retention.delete_snapshot(s, storage, history.snaps[2])
     assert refused.value.code == "SnapshotInUse"
     assert storage.exists(f"snapshots/{history.snaps[2]}/reconstruction/cloud.ply")
+
+
+def test_the_twins_current_snapshot_is_never_deleted(
+    session_factory: sessionmaker[Session], storage: LocalStorage, history: History
+) -> None:
+    """The chain is held at seq 2 (its comparison with seq 3 failed, say): seq 2 is the
+    "before" of the retry and stays; seq 3, not yet taken into account, stays too."""
+    with session_factory.begin() as s:
+        env = s.get_one(Environment, history.env)
+        env.twin_seq, env.twin_snapshot_id = 2, history.snaps[1]
+        s.get_one(Comparison, history.comparisons[1]).state = ComparisonState.failed
+        s.get_one(Job, history.comparison_jobs[1]).state = JobState.failed
+    with session_factory.begin() as s, pytest.raises(Conflict) as refused:
+        retention.delete_snapshot(s, storage, history.snaps[1])
+    assert refused.value.code == "SnapshotInUse"
+    with session_factory.begin() as s:
+        counts = retention.apply_policy(s, storage, retention.Policy(keep_last_snapshots=1))
+    assert counts["snapshots_deleted"] == 1  # seq 1 only
+    with session_factory.begin() as s:
+        assert [x.seq for x in snapshots.history(s, history.env)] == [3, 2]
 
 
 def test_delete_snapshot_refused_while_a_job_uses_it(

@@ -18,17 +18,19 @@ depends_on: str | Sequence[str] | None = None
 
 
 def upgrade() -> None:
-    with op.batch_alter_table('environments') as batch:
-        batch.add_column(
-            sa.Column('twin_seq', sa.Integer(), nullable=False, server_default=sa.text('0'))
-        )
+    # Plain ADD COLUMNs only (recreate='never'): on SQLite a batch that recreated
+    # ``environments`` would DROP it, and with foreign keys on that deletes every snapshot,
+    # job and comparison through their ON DELETE CASCADE. A constant string server default
+    # keeps ``twin_seq`` an ADD COLUMN there.
+    with op.batch_alter_table('environments', recreate='never') as batch:
+        batch.add_column(sa.Column('twin_seq', sa.Integer(), nullable=False, server_default='0'))
         batch.add_column(sa.Column('twin_snapshot_id', sa.String(length=36), nullable=True))
         batch.add_column(sa.Column('twin_blocked_by', sa.String(length=36), nullable=True))
-    with op.batch_alter_table('snapshots') as batch:
+    with op.batch_alter_table('snapshots', recreate='never') as batch:
         batch.add_column(sa.Column('twin_update', sa.String(length=20), nullable=True))
-    with op.batch_alter_table('comparisons') as batch:
+    with op.batch_alter_table('comparisons', recreate='never') as batch:
         batch.add_column(sa.Column('applied_at', sa.DateTime(timezone=True), nullable=True))
-    with op.batch_alter_table('changes') as batch:
+    with op.batch_alter_table('changes', recreate='never') as batch:
         batch.add_column(sa.Column('object_id', sa.String(length=36), nullable=True))
         batch.add_column(sa.Column('replaced_instance_id', sa.String(length=36), nullable=True))
         batch.add_column(sa.Column('centroid_env', sa.JSON(), nullable=True))
@@ -86,15 +88,16 @@ def _settle_existing() -> None:
 
 
 def downgrade() -> None:
-    with op.batch_alter_table('changes') as batch:
+    # ALTER TABLE ... DROP COLUMN (SQLite 3.35+), never a recreate: see upgrade()
+    with op.batch_alter_table('changes', recreate='never') as batch:
         batch.drop_column('centroid_env')
         batch.drop_column('replaced_instance_id')
         batch.drop_column('object_id')
-    with op.batch_alter_table('comparisons') as batch:
+    with op.batch_alter_table('comparisons', recreate='never') as batch:
         batch.drop_column('applied_at')
-    with op.batch_alter_table('snapshots') as batch:
+    with op.batch_alter_table('snapshots', recreate='never') as batch:
         batch.drop_column('twin_update')
-    with op.batch_alter_table('environments') as batch:
+    with op.batch_alter_table('environments', recreate='never') as batch:
         batch.drop_column('twin_blocked_by')
         batch.drop_column('twin_snapshot_id')
         batch.drop_column('twin_seq')

@@ -9,18 +9,23 @@ fake pipeline of :mod:`tests.workers.fake_pipeline` in place of the geometry."""
 from __future__ import annotations
 
 import io
+from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from alembic import command
+from alembic.config import Config
 from fastapi.testclient import TestClient
 from PIL import Image
-from sqlalchemy import select
+from sqlalchemy import Connection, MetaData, create_engine, select, text
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core.enums import JobKind, JobState
 from app.core.models import Comparison, Event, Job, Snapshot
 from tests.app.conftest import Keys, SentTasks
+from tests.conftest import REPO_ROOT
 from tests.workers import fake_pipeline
 from workers import comparison as comparison_glue
 from workers import snapshot as snapshot_glue
@@ -273,3 +278,73 @@ def test_a_failed_comparison_blocks_the_chain_until_retried(
         ("twin.updated", 2),
         ("twin.updated", 3),
     ]
+
+
+def test_migration_settles_existing_environments_up_to_their_first_unapplied_snapshot(
+    tmp_path: Path,
+) -> None:
+    """0004 on a database that old code filled: each environment's twin is taken to have
+    every snapshot of its longest settled run from seq 1, and the chain goes on from there."""
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    config = Config(str(REPO_ROOT / "alembic.ini"))
+    config.attributes["url"] = url
+    command.upgrade(config, "0003")
+    engine = create_engine(url)
+    meta = MetaData()
+    meta.reflect(engine)
+    now = datetime(2026, 11, 1, tzinfo=UTC)
+
+    def insert(conn: Connection, table: str, **values: Any) -> None:
+        """A row with ``values``; any other NOT NULL column gets a plain filler."""
+        for column in meta.tables[table].columns:
+            if column.name in values or column.nullable or column.server_default is not None:
+                continue
+            python_type = column.type.python_type
+            filler: dict[type, Any] = {str: "x", int: 0, float: 0.0, bool: False, dict: {}}
+            values[column.name] = now if python_type is datetime else filler.get(python_type, [])
+        conn.execute(meta.tables[table].insert().values(**values))
+
+    states = ["reconstructed", "failed", "reconstructed", "reconstructed", "uploaded"]
+    with engine.begin() as conn:
+        insert(conn, "environments", id="env-a", name="a", classes=[], options={})
+        insert(conn, "environments", id="env-b", name="b", classes=[], options={})
+        for seq, state in enumerate(states, start=1):
+            insert(conn, "snapshots", id=f"s{seq}", environment_id="env-a", seq=seq, state=state)
+        for name, before, after, applied in (("c3", "s1", "s3", True), ("c4", "s3", "s4", False)):
+            insert(conn, "jobs", id=f"job-{name}", kind="comparison", state="succeeded")
+            insert(
+                conn,
+                "comparisons",
+                id=name,
+                environment_id="env-a",
+                before_id=before,
+                after_id=after,
+                job_id=f"job-{name}",
+                automatic=True,
+                state="succeeded" if applied else "queued",
+                applied_to_state=applied,
+                completed_at=now if applied else None,
+            )
+    command.upgrade(config, "0004")
+    with engine.connect() as conn:
+        envs = dict(
+            conn.execute(
+                text(
+                    "SELECT id, twin_seq || ':' || coalesce(twin_snapshot_id, '-') "
+                    "FROM environments"
+                )
+            ).all()
+        )
+        updates = dict(conn.execute(text("SELECT id, twin_update FROM snapshots")).all())
+        applied_at = dict(conn.execute(text("SELECT id, applied_at FROM comparisons")).all())
+    assert envs == {"env-a": "3:s3", "env-b": "0:-"}
+    assert updates == {"s1": "baseline", "s2": "skipped", "s3": "applied", "s4": None, "s5": None}
+    assert applied_at["c3"] is not None and applied_at["c4"] is None
+    # and back: the columns go, the rows stay (no table is recreated, so nothing cascades)
+    command.downgrade(config, "0003")
+    with engine.connect() as conn:
+        assert conn.execute(text("SELECT count(*) FROM snapshots")).scalar() == len(states)
+        assert conn.execute(text("SELECT count(*) FROM comparisons")).scalar() == 2
+        columns = {row[1] for row in conn.execute(text("PRAGMA table_info(environments)"))}
+    engine.dispose()
+    assert "twin_seq" not in columns

@@ -10,7 +10,7 @@ from __future__ import annotations
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -70,8 +70,21 @@ class Settings(BaseSettings):
     webhook_retry_schedule_s: list[float] = Field(
         default=[5, 30, 120, 600, 1800, 3600, 7200, 14400, 28800, 28800]
     )
-    webhook_timeout_s: float = 10.0
+    # One overall deadline per delivery attempt: lookup, connect, TLS, request, response
+    # headers and the 1 KB excerpt (a receiver trickling bytes cannot hold a thread longer).
+    webhook_timeout_s: float = Field(default=10.0, gt=0)
     webhook_allowed_networks: list[str] = Field(default_factory=list)
+    # After POST /v1/webhooks/{id}/rotate-secret the previous secret stays valid this long:
+    # deliveries carry both signatures until then (0: the old secret stops at once).
+    webhook_secret_overlap_s: float = Field(default=24 * 3600.0, ge=0)
+
+    # Secrets at rest (webhook signing secrets) are encrypted with a key derived from this
+    # value: 32+ characters, e.g. `openssl rand -hex 32`. To change it, give the new and the
+    # old comma-separated (the first encrypts, each decrypts). Unset in the embedded default:
+    # a key is generated into ``data_dir/secret.key`` (mode 0600) on first use. Required
+    # with a broker server (TWINDELTA_BROKER_URL): processes on other machines share no
+    # data_dir, so a generated key would differ between them.
+    secret_key: SecretStr | None = None
 
     # Retention (app/core/retention.py), run every ``retention_interval_s`` by beat; 0 turns
     # a rule off. Photos of snapshots older than ``retention_images_after_days`` are deleted
@@ -83,6 +96,30 @@ class Settings(BaseSettings):
     retention_keep_last_snapshots: int = Field(default=0, ge=0)
     retention_interval_s: float = Field(default=3600.0, gt=0)
     stale_files_after_s: float = Field(default=24 * 3600.0, gt=0)
+
+    @field_validator("secret_key")
+    @classmethod
+    def _refuse_placeholder_secret_key(cls, value: SecretStr | None) -> SecretStr | None:
+        if value is None or not value.get_secret_value().strip():
+            return None  # ``KEY=`` means unset
+        for key in value.get_secret_value().split(","):
+            key = key.strip()
+            if len(key) < 32 or len(set(key)) < 8 or "change" in key.lower():
+                raise ValueError(
+                    "TWINDELTA_SECRET_KEY: each key must be 32+ random characters, not a "
+                    "placeholder (e.g. `openssl rand -hex 32`)"
+                )
+        return value
+
+    @model_validator(mode="after")
+    def _require_secret_key_with_a_broker_server(self) -> Settings:
+        if self.secret_key is None and self.broker_url:
+            raise ValueError(
+                "TWINDELTA_SECRET_KEY is required with TWINDELTA_BROKER_URL (it encrypts "
+                "webhook secrets at rest and every process must share it), e.g. "
+                "`openssl rand -hex 32`"
+            )
+        return self
 
     @field_validator("bootstrap_admin_key")
     @classmethod

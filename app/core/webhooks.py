@@ -55,7 +55,7 @@ import httpx
 from sqlalchemy import Select, and_, exists, func, or_, select, update
 from sqlalchemy.orm import Session, aliased
 
-from app.core import queue
+from app.core import queue, secretbox
 from app.core.enums import DeliveryState, EventType
 from app.core.errors import Conflict, InvalidInput, NotFound
 from app.core.models import (
@@ -131,7 +131,7 @@ def signed_headers(
 
 
 def verify_signature(
-    secret: str,
+    secret: str | Sequence[str],
     headers: Mapping[str, str],
     body: bytes,
     tolerance_s: float = 300,
@@ -141,7 +141,9 @@ def verify_signature(
     """Check a received webhook; raise :class:`WebhookVerificationError` unless one of the
     ``v1`` signatures matches and the timestamp is within ``tolerance_s`` of ``now``.
 
-    ``headers`` may use any letter case; ``body`` must be the raw bytes as received."""
+    ``secret`` may be several (a receiver that holds the new and the old secret while it
+    switches after a rotation): a signature made with any of them is accepted. ``headers``
+    may use any letter case; ``body`` must be the raw bytes as received."""
     lower = {k.lower(): v for k, v in headers.items()}
     msg_id = lower.get("webhook-id")
     stamp = lower.get("webhook-timestamp")
@@ -155,10 +157,11 @@ def verify_signature(
     current = time.time() if now is None else now
     if abs(current - timestamp) > tolerance_s:
         raise WebhookVerificationError("webhook-timestamp is outside the tolerance")
-    expected = sign(secret, msg_id, timestamp, body).removeprefix("v1,")
+    keys = [secret] if isinstance(secret, str) else list(secret)
+    expected = [sign(k, msg_id, timestamp, body).removeprefix("v1,").encode() for k in keys]
     for candidate in signatures.split():
         version, _, value = candidate.partition(",")
-        if version == "v1" and hmac.compare_digest(value.encode(), expected.encode()):
+        if version == "v1" and any(hmac.compare_digest(value.encode(), e) for e in expected):
             return
     raise WebhookVerificationError("no matching signature")
 
@@ -254,12 +257,51 @@ def create_subscription(
         url=url,
         event_types=[str(t) for t in types],
         environment_id=environment_id,
-        secret=new_secret(),
+        secret_encrypted=secretbox.encrypt(settings, new_secret()),
         active=True,
     )
     session.add(sub)
     session.flush()
     return sub
+
+
+def current_secret(settings: Settings, sub: WebhookSubscription) -> str:
+    """The subscription's signing secret in plain text (stored encrypted)."""
+    return secretbox.decrypt(settings, sub.secret_encrypted)
+
+
+def signing_secrets(
+    settings: Settings, sub: WebhookSubscription, now: datetime | None = None
+) -> tuple[str, ...]:
+    """The secrets a delivery is signed with now: the current one, and the previous one while
+    a rotation's overlap lasts (Standard Webhooks: one signature each, space-separated)."""
+    now = now or utcnow()
+    out = [current_secret(settings, sub)]
+    expires = sub.previous_secret_expires_at
+    if sub.previous_secret_encrypted and expires is not None and _aware(expires) > now:
+        out.append(secretbox.decrypt(settings, sub.previous_secret_encrypted))
+    return tuple(out)
+
+
+def rotate_secret(
+    session: Session, settings: Settings, subscription_id: str, now: datetime | None = None
+) -> tuple[WebhookSubscription, str]:
+    """Give a subscription a new secret; returns it in plain text (the caller shows it once).
+
+    The current secret becomes the previous one and keeps signing, next to the new one, for
+    ``Settings.webhook_secret_overlap_s``; a previous secret from an earlier rotation is
+    dropped. 409 for a deactivated subscription."""
+    sub = get_subscription(session, subscription_id)
+    if not sub.active:
+        raise Conflict(f"webhook {sub.id} is deactivated", code="WebhookInactive")
+    now = now or utcnow()
+    secret = new_secret()
+    overlap = settings.webhook_secret_overlap_s
+    sub.previous_secret_encrypted = sub.secret_encrypted if overlap > 0 else None
+    sub.previous_secret_expires_at = now + timedelta(seconds=overlap) if overlap > 0 else None
+    sub.secret_encrypted = secretbox.encrypt(settings, secret)
+    session.flush()
+    return sub, secret
 
 
 def get_subscription(session: Session, subscription_id: str) -> WebhookSubscription:
@@ -530,9 +572,12 @@ def claim(
         return None
     body = json.dumps(cloudevent(event), separators=(",", ":"), ensure_ascii=False).encode()
     lease_until = now + timedelta(seconds=lease_s(settings))
-    return Claim(
-        claimed_id, attempt, run_attempt, sub.url, (sub.secret,), event.id, body, lease_until
-    )
+    try:
+        keys = signing_secrets(settings, sub, now)
+    except secretbox.SecretUnreadable as exc:  # the attempt is logged as failed, not lost
+        log.error("delivery %s: %s", claimed_id, exc.detail)
+        keys = ()
+    return Claim(claimed_id, attempt, run_attempt, sub.url, keys, event.id, body, lease_until)
 
 
 @lru_cache(maxsize=1)
@@ -697,6 +742,8 @@ def send(claim: Claim, settings: Settings) -> Outcome:
     backend: _PinnedBackend | None = None
     watchdog: threading.Timer | None = None
     try:
+        if not claim.secrets:
+            raise _Refused("the signing secret cannot be decrypted (TWINDELTA_SECRET_KEY)")
         target = _resolve_by(claim.url, allowed_networks(settings), deadline)
         headers = signed_headers(claim.secrets, claim.event_id, claim.body, int(time.time()))
         headers.update({"content-type": CONTENT_TYPE, "user-agent": USER_AGENT})

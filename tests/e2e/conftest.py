@@ -23,6 +23,7 @@ from tests.app.conftest import create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
 
 ADMIN_KEY = "td_e2e_admin_key_0123456789abcdef"
+SECRET_KEY = "td_e2e_secret_key_0123456789abcdefghijklmnop"  # encrypts secrets at rest
 
 
 def wait_until(
@@ -195,6 +196,7 @@ def service_env(data_dir: Path, **settings: str) -> dict[str, str]:
     env.update(
         TWINDELTA_DATA_DIR=str(data_dir),
         TWINDELTA_BOOTSTRAP_ADMIN_KEY=ADMIN_KEY,
+        TWINDELTA_SECRET_KEY=SECRET_KEY,
         TWINDELTA_HEARTBEAT_INTERVAL_S="0.5",
         TWINDELTA_HEARTBEAT_TIMEOUT_S="4",
         TWINDELTA_SWEEP_INTERVAL_S="1",

@@ -24,7 +24,7 @@ from app.core.models import Delivery, DeliveryAttempt, Environment, Job, Webhook
 from app.core.queue import CPU_QUEUE
 from app.core.settings import get_settings
 from tests.app.core.test_webhooks import DripServer, Receiver, overlapping
-from tests.e2e.conftest import Processes, RedisServer, wait_until
+from tests.e2e.conftest import SECRET_KEY, Processes, RedisServer, wait_until
 
 pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
@@ -47,6 +47,7 @@ def stack(
         "webhook_retry_schedule_s": SCHEDULE,
         "webhook_allowed_networks": '["127.0.0.0/8"]',
         "webhook_timeout_s": "5",
+        "secret_key": SECRET_KEY,  # API and workers must share it (secrets at rest)
     }
     procs = processes(**settings)
     for key, value in settings.items():
@@ -152,7 +153,9 @@ def test_slow_receiver_order_and_worker_killed_mid_schedule(
         assert {h.headers["webhook-id"] for h in hits} == {failed_id}
         assert [a.status_code for a in attempts(factory, flaky)] == [500, 500, 200]
         with factory() as s:
-            secret = s.get(WebhookSubscription, flaky).secret  # type: ignore[union-attr]
+            sub = s.get(WebhookSubscription, flaky)
+            assert sub is not None
+            secret = webhooks.current_secret(get_settings(), sub)
         for h in hits:
             webhooks.verify_signature(secret, h.headers, h.body)
         for sub in (slow, fast):

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, status
 
 from app.api.deps import AdminKey, SessionDep, SettingsDep
-from app.api.schemas.common import ERRORS
+from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.webhooks import (
     DeliveryRead,
     WebhookCreate,
@@ -32,7 +32,8 @@ def create_webhook(
         event_types=body.event_types,
         environment_id=body.environment_id,
     )
-    return WebhookCreated(**WebhookRead.model_validate(sub).model_dump(), secret=sub.secret)
+    secret = webhooks.current_secret(settings, sub)
+    return WebhookCreated(**WebhookRead.model_validate(sub).model_dump(), secret=secret)
 
 
 @router.get("")
@@ -51,6 +52,21 @@ def get_webhook(webhook_id: str, session: SessionDep, _key: AdminKey) -> Webhook
 def delete_webhook(webhook_id: str, session: SessionDep, _key: AdminKey) -> WebhookRead:
     """Deactivate a subscription: nothing more is sent and its pending deliveries end failed."""
     return WebhookRead.model_validate(webhooks.deactivate(session, webhook_id))
+
+
+@router.post(
+    "/{webhook_id}/rotate-secret",
+    responses={409: {"model": ErrorOut, "description": "the webhook is deactivated"}},
+)
+def rotate_secret(
+    webhook_id: str, session: SessionDep, settings: SettingsDep, _key: AdminKey
+) -> WebhookCreated:
+    """Give a webhook a new signing secret, shown only in this response. The previous secret
+    keeps signing too until `previous_secret_expires_at` (TWINDELTA_WEBHOOK_SECRET_OVERLAP_S,
+    default 24 h): each delivery then carries both signatures, space-separated in
+    `webhook-signature`, so the receiver can switch to the new secret at any time within it."""
+    sub, secret = webhooks.rotate_secret(session, settings, webhook_id)
+    return WebhookCreated(**WebhookRead.model_validate(sub).model_dump(), secret=secret)
 
 
 @router.get("/{webhook_id}/deliveries")

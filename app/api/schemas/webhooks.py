@@ -31,11 +31,16 @@ class WebhookRead(Model):
     active: bool
     created_at: datetime
     deactivated_at: datetime | None
+    previous_secret_expires_at: datetime | None = Field(
+        description="after a secret rotation: until then deliveries carry a signature made "
+        "with the previous secret too (webhook-signature: 'v1,<new> v1,<previous>')"
+    )
 
 
 class WebhookCreated(WebhookRead):
     secret: str = Field(
-        description="whsec_<base64>: the signing key (Standard Webhooks); shown only here"
+        description="whsec_<base64>: the signing key (Standard Webhooks); shown only in this "
+        "response (it is stored encrypted)"
     )
 
 

@@ -10,6 +10,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.core import webhooks
+from app.core.enums import EventType
 from app.core.settings import get_settings
 from tests.app.conftest import Keys, SentTasks
 from tests.app.core.test_webhooks import (
@@ -20,7 +22,7 @@ from tests.app.core.test_webhooks import (
     record,
 )
 
-ALL_TYPES = ["comparison.completed", "job.failed", "snapshot.reconstructed"]
+ALL_TYPES = sorted(str(t) for t in EventType)
 PUBLIC = "https://93.184.216.34/hooks/twin"
 
 
@@ -174,4 +176,39 @@ def test_dead_letter_in_the_log_then_redelivery(
         f"/v1/webhooks/{made['id']}/deliveries/{delivery['id']}/redeliver",
         headers=keys.headers(),
     )
+    assert r.status_code == 409 and r.json()["error"] == "WebhookInactive"
+
+
+def test_rotate_secret_shows_the_new_one_once_and_keeps_the_old_for_the_overlap(
+    client: TestClient,
+    keys: Keys,
+    loopback_allowed: None,
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+) -> None:
+    receiver = Receiver().start()
+    try:
+        made = create(client, keys, url=receiver.url())
+        path = f"/v1/webhooks/{made['id']}/rotate-secret"
+        r = client.post(path, headers=keys.headers())
+        assert r.status_code == 200, r.text
+        rotated = r.json()
+        assert rotated["id"] == made["id"] and rotated["secret"].startswith("whsec_")
+        assert rotated["secret"] != made["secret"]
+        assert rotated["previous_secret_expires_at"] is not None
+        got = client.get(f"/v1/webhooks/{made['id']}", headers=keys.headers()).json()
+        assert "secret" not in got and got["previous_secret_expires_at"] is not None
+        record(session_factory, make_env(session_factory))
+        assert drive(session_factory, sent_tasks) == ["succeeded"]
+        [hit] = receiver.on("/hook")
+        assert len(hit.headers["webhook-signature"].split(" ")) == 2
+        for secret in (made["secret"], rotated["secret"]):
+            webhooks.verify_signature(secret, hit.headers, hit.body)
+    finally:
+        receiver.stop()
+    assert client.post(path, headers=keys.headers("read")).status_code == 403
+    r = client.post("/v1/webhooks/nope/rotate-secret", headers=keys.headers())
+    assert r.status_code == 404 and r.json()["error"] == "NotFound"
+    client.delete(f"/v1/webhooks/{made['id']}", headers=keys.headers())
+    r = client.post(path, headers=keys.headers())
     assert r.status_code == 409 and r.json()["error"] == "WebhookInactive"

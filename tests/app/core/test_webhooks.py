@@ -14,25 +14,31 @@ import itertools
 import json
 import select as io_select
 import socket
+import stat
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from datetime import timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import select
+from alembic import command
+from alembic.config import Config
+from pydantic import SecretStr, ValidationError
+from sqlalchemy import select, text
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import db, events, webhooks
+from app.core import db, events, secretbox, webhooks
 from app.core.enums import DeliveryState, EventType
-from app.core.errors import InvalidInput
-from app.core.models import Delivery, DeliveryAttempt, Environment, utcnow
-from app.core.settings import get_settings
+from app.core.errors import Conflict, InvalidInput
+from app.core.models import Delivery, DeliveryAttempt, Environment, WebhookSubscription, utcnow
+from app.core.settings import Settings, get_settings
 from bench.client import free_port
 from tests.app.conftest import SentTasks
+from tests.conftest import REPO_ROOT
 
 # --- a real receiver on loopback --------------------------------------------------------------
 
@@ -273,7 +279,7 @@ def subscribe(
         sub = webhooks.create_subscription(
             s, get_settings(), url=url, event_types=types, environment_id=environment_id
         )
-        return sub.id, sub.secret
+        return sub.id, webhooks.current_secret(get_settings(), sub)
 
 
 def record(
@@ -814,3 +820,175 @@ def test_proxy_environment_variables_are_ignored(
     record(session_factory, env)
     assert drive(session_factory, sent_tasks) == ["succeeded"]
     assert len(receiver.on("/hook")) == 1
+
+
+# --- secrets at rest and rotation -------------------------------------------------------------
+
+
+def test_secret_encrypted_at_rest_with_a_generated_key_file(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    data_dir: Path,
+    receiver: Receiver,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The embedded default (no TWINDELTA_SECRET_KEY): a key file is made under the data
+    folder, readable by the owner only; the row holds no trace of the secret; deliveries are
+    still signed with it; another key cannot read it."""
+    monkeypatch.delenv("TWINDELTA_SECRET_KEY", raising=False)
+    get_settings.cache_clear()
+    sub_id, secret = subscribe(session_factory, receiver.url())
+    key_file = data_dir / "secret.key"
+    assert key_file.exists() and stat.S_IMODE(key_file.stat().st_mode) == 0o600
+    with session_factory() as s:
+        row = s.execute(
+            text("SELECT * FROM webhook_subscriptions WHERE id = :id"), {"id": sub_id}
+        ).one()
+    stored = " ".join(str(v) for v in row)
+    raw = base64.b64decode(secret.removeprefix("whsec_"))
+    for trace in (secret, secret.removeprefix("whsec_"), raw.hex(), "whsec_"):
+        assert trace not in stored
+    record(session_factory, make_env(session_factory))
+    assert drive(session_factory, sent_tasks) == ["succeeded"]
+    [hit] = receiver.on("/hook")
+    webhooks.verify_signature(secret, hit.headers, hit.body)
+    other = get_settings().model_copy(update={"secret_key": SecretStr("k" * 16 + "e" * 16 + "y")})
+    with session_factory() as s:
+        sub = s.get(WebhookSubscription, sub_id)
+        assert sub is not None
+        with pytest.raises(secretbox.SecretUnreadable):
+            webhooks.current_secret(other, sub)
+
+
+def test_settings_refuse_a_missing_or_placeholder_secret_key(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.delenv("TWINDELTA_SECRET_KEY", raising=False)
+    monkeypatch.delenv("TWINDELTA_BROKER_URL", raising=False)
+    with pytest.raises(ValidationError, match="TWINDELTA_SECRET_KEY is required"):
+        Settings(broker_url="redis://127.0.0.1:6379/0")
+    with pytest.raises(ValidationError, match="TWINDELTA_SECRET_KEY is required"):
+        Settings(broker_url="redis://127.0.0.1:6379/0", secret_key="")
+    for placeholder in ("changeme", "x" * 40, "change-me-to-a-long-random-string-please"):
+        with pytest.raises(ValidationError, match="placeholder"):
+            Settings(secret_key=placeholder)
+    good = "3f9c1a7e5b2d48c6a0e1f7b9d3c5a8e2"
+    assert Settings(broker_url="redis://127.0.0.1:6379/0", secret_key=good).secret_key
+    assert Settings().secret_key is None  # embedded: the generated key file
+
+
+def test_a_changed_secret_key_keeps_the_old_one_after_a_comma(
+    session_factory: sessionmaker[Session], webhook_settings: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    old_key, new_key = "a1b2c3d4e5f60718293a4b5c6d7e8f90", "0f1e2d3c4b5a69788796a5b4c3d2e1f0"
+    monkeypatch.setenv("TWINDELTA_SECRET_KEY", old_key)
+    get_settings.cache_clear()
+    sub_id, secret = subscribe(session_factory, "http://127.0.0.1:9/hook")
+    monkeypatch.setenv("TWINDELTA_SECRET_KEY", f"{new_key},{old_key}")
+    get_settings.cache_clear()
+    with session_factory() as s:
+        sub = s.get(WebhookSubscription, sub_id)
+        assert sub is not None
+        assert webhooks.current_secret(get_settings(), sub) == secret
+        token = secretbox.reencrypt(get_settings(), sub.secret_encrypted)
+    only_new = get_settings().model_copy(update={"secret_key": SecretStr(new_key)})
+    assert secretbox.decrypt(only_new, token) == secret
+
+
+def test_rotated_secret_signs_with_both_during_the_overlap_then_only_the_new(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    receiver: Receiver,
+) -> None:
+    env = make_env(session_factory)
+    sub_id, old = subscribe(session_factory, receiver.url())
+    before = utcnow()
+    with session_factory.begin() as s:
+        sub, new = webhooks.rotate_secret(s, get_settings(), sub_id)
+        assert new != old and new.startswith("whsec_")
+        expires = sub.previous_secret_expires_at
+    assert expires is not None
+    overlap = get_settings().webhook_secret_overlap_s
+    assert abs((expires - before).total_seconds() - overlap) < 5
+    event_id = record(session_factory, env, 1)
+    assert drive(session_factory, sent_tasks) == ["succeeded"]
+    [hit] = receiver.on("/hook")
+    ts = int(hit.headers["webhook-timestamp"])
+    signatures = hit.headers["webhook-signature"].split(" ")
+    assert signatures == [
+        webhooks.sign(new, event_id, ts, hit.body),
+        webhooks.sign(old, event_id, ts, hit.body),
+    ]
+    webhooks.verify_signature(new, hit.headers, hit.body)  # a receiver already switched
+    webhooks.verify_signature(old, hit.headers, hit.body)  # one not switched yet
+    webhooks.verify_signature([webhooks.new_secret(), old], hit.headers, hit.body)
+    with pytest.raises(webhooks.WebhookVerificationError):
+        webhooks.verify_signature(webhooks.new_secret(), hit.headers, hit.body)
+
+    with session_factory.begin() as s:  # the overlap is over
+        got = s.get(WebhookSubscription, sub_id)
+        assert got is not None
+        got.previous_secret_expires_at = utcnow() - timedelta(seconds=1)
+    record(session_factory, env, 2)
+    assert drive(session_factory, sent_tasks) == ["succeeded"]
+    last = receiver.on("/hook")[-1]
+    assert len(last.headers["webhook-signature"].split(" ")) == 1
+    webhooks.verify_signature(new, last.headers, last.body)
+    with pytest.raises(webhooks.WebhookVerificationError):
+        webhooks.verify_signature(old, last.headers, last.body)
+
+
+def test_rotation_without_overlap_and_of_a_deactivated_webhook(
+    session_factory: sessionmaker[Session], webhook_settings: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_SECRET_OVERLAP_S", "0")
+    get_settings.cache_clear()
+    sub_id, old = subscribe(session_factory, "http://127.0.0.1:9/hook")
+    with session_factory.begin() as s:
+        sub, new = webhooks.rotate_secret(s, get_settings(), sub_id)
+        assert webhooks.signing_secrets(get_settings(), sub) == (new,) and new != old
+        assert sub.previous_secret_encrypted is None
+        webhooks.deactivate(s, sub_id)
+        with pytest.raises(Conflict):
+            webhooks.rotate_secret(s, get_settings(), sub_id)
+
+
+def test_migration_encrypts_existing_plain_secrets_and_downgrade_restores_them(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """0003 on a database whose subscriptions hold plain whsec_ secrets (the embedded
+    default, so the key file is generated under the data folder on the way)."""
+    monkeypatch.setenv("TWINDELTA_DATA_DIR", str(tmp_path))
+    monkeypatch.delenv("TWINDELTA_SECRET_KEY", raising=False)
+    monkeypatch.delenv("TWINDELTA_BROKER_URL", raising=False)
+    get_settings.cache_clear()
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    config = Config(str(REPO_ROOT / "alembic.ini"))
+    config.attributes["url"] = url
+    command.upgrade(config, "0002")
+    secret = webhooks.new_secret()
+    engine = db.make_engine(url)
+    try:
+        with engine.begin() as conn:
+            conn.execute(
+                text(
+                    "INSERT INTO webhook_subscriptions (id, url, event_types, secret, active,"
+                    " created_at) VALUES ('w1', 'https://93.184.216.34/h', '[]', :s, 1,"
+                    " '2026-11-01 00:00:00')"
+                ),
+                {"s": secret},
+            )
+        command.upgrade(config, "0003")
+        with engine.connect() as conn:
+            stored = conn.execute(text("SELECT secret_encrypted FROM webhook_subscriptions")).one()
+        assert stored[0] != secret and secret.removeprefix("whsec_") not in stored[0]
+        assert secretbox.decrypt(get_settings(), stored[0]) == secret
+        assert (tmp_path / "secret.key").exists()
+        command.downgrade(config, "0002")
+        with engine.connect() as conn:
+            assert conn.execute(text("SELECT secret FROM webhook_subscriptions")).one()[0] == secret
+    finally:
+        engine.dispose()
+        get_settings.cache_clear()

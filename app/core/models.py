@@ -75,6 +75,13 @@ class Environment(Base):
     reference: Mapped[Json | None] = mapped_column(JSON)
     options: Mapped[Json] = mapped_column(JSON, default=dict)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    # The twin's place in the snapshot sequence (app.core.twin.advance): every snapshot up
+    # to ``twin_seq`` is applied or skipped; ``twin_snapshot_id`` is the newest one applied
+    # (the "before" of the next automatic comparison); ``twin_blocked_by`` the failed
+    # automatic comparison that holds the chain, once announced.
+    twin_seq: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    twin_snapshot_id: Mapped[str | None] = mapped_column(String(36))
+    twin_blocked_by: Mapped[str | None] = mapped_column(String(36))
 
 
 class LibraryObject(Base):
@@ -101,13 +108,6 @@ class LibraryObject(Base):
     file_key: Mapped[str] = mapped_column(String(500))
     artifacts_key: Mapped[str | None] = mapped_column(String(500))
     size_bytes: Mapped[int] = mapped_column(Integer)
-    # The twin's place in the snapshot sequence (app.core.twin.advance): every snapshot up
-    # to ``twin_seq`` is applied or skipped; ``twin_snapshot_id`` is the newest one applied
-    # (the "before" of the next automatic comparison); ``twin_blocked_by`` the failed
-    # automatic comparison that holds the chain, once announced.
-    twin_seq: Mapped[int] = mapped_column(Integer, default=0, server_default=text("0"))
-    twin_snapshot_id: Mapped[str | None] = mapped_column(String(36))
-    twin_blocked_by: Mapped[str | None] = mapped_column(String(36))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     deleted_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
@@ -137,6 +137,8 @@ class Snapshot(Base):
     cameras_key: Mapped[str | None] = mapped_column(String(500))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     reconstructed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    # what the twin made of it: baseline | applied | skipped (None until its turn)
+    twin_update: Mapped[str | None] = mapped_column(String(20))
     # set when retention deleted the photos (the cloud, cameras and detections stay)
     images_deleted_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
@@ -163,8 +165,6 @@ class SnapshotImage(Base):
     size_bytes: Mapped[int] = mapped_column(Integer)
     detections: Mapped[list[Json]] = mapped_column(JSON, default=list)
     verified_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
-    # what the twin made of it: baseline | applied | skipped (None until its turn)
-    twin_update: Mapped[str | None] = mapped_column(String(20))
 
     snapshot: Mapped[Snapshot] = relationship(back_populates="images")
 
@@ -225,6 +225,7 @@ class Comparison(Base):
     applied_to_state: Mapped[bool] = mapped_column(Boolean, default=False)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     completed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    applied_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
     changes: Mapped[list[Change]] = relationship(
         back_populates="comparison", order_by="Change.position", cascade="all, delete-orphan"
@@ -241,17 +242,19 @@ class Change(Base):
     position: Mapped[int] = mapped_column(Integer)
     type: Mapped[str] = mapped_column(String(20))
     object_name: Mapped[str | None] = mapped_column(String(200))
+    object_id: Mapped[str | None] = mapped_column(String(36))  # the library object, if known
     instance_id: Mapped[str | None] = mapped_column(String(36))
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     previous_pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     replaced_object: Mapped[str | None] = mapped_column(String(200))
+    replaced_instance_id: Mapped[str | None] = mapped_column(String(36))
+    centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
     identification: Mapped[Json | None] = mapped_column(JSON)
     cluster: Mapped[Json | None] = mapped_column(JSON)
     pose_quality: Mapped[Json | None] = mapped_column(JSON)
 
     comparison: Mapped[Comparison] = relationship(back_populates="changes")
 
-    applied_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 
 class TwinInstance(Base):
     """One physical object instance in an environment's twin, open until removed."""
@@ -268,13 +271,10 @@ class TwinInstance(Base):
     )
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     pose_quality: Mapped[Json | None] = mapped_column(JSON)
-    object_id: Mapped[str | None] = mapped_column(String(36))  # the library object, if known
     centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
     since_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
     created_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
     closed_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
-    replaced_instance_id: Mapped[str | None] = mapped_column(String(36))
-    centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
 

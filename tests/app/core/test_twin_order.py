@@ -9,6 +9,8 @@ fake pipeline of :mod:`tests.workers.fake_pipeline` in place of the geometry."""
 from __future__ import annotations
 
 import io
+import threading
+import uuid
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -19,12 +21,13 @@ from alembic import command
 from alembic.config import Config
 from fastapi.testclient import TestClient
 from PIL import Image
-from sqlalchemy import Connection, MetaData, create_engine, select, text
+from sqlalchemy import Connection, MetaData, create_engine, func, select, text
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.core import db, twin
 from app.core.enums import JobKind, JobState
-from app.core.models import Comparison, Event, Job, Snapshot
-from tests.app.conftest import Keys, SentTasks
+from app.core.models import Change, Comparison, Environment, Event, InstancePose, Job, Snapshot
+from tests.app.conftest import Keys, SentTasks, create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
 from tests.workers import fake_pipeline
 from workers import comparison as comparison_glue
@@ -348,3 +351,72 @@ def test_migration_settles_existing_environments_up_to_their_first_unapplied_sna
         columns = {row[1] for row in conn.execute(text("PRAGMA table_info(environments)"))}
     engine.dispose()
     assert "twin_seq" not in columns
+
+
+def test_two_transactions_never_apply_the_same_snapshot_twice() -> None:
+    """PostgreSQL, two connections: while one transaction moves the twin on (the
+    environment row locked), another one's advance waits for it, then finds nothing left
+    to do: the comparison's changes are in the twin once, one twin.updated per snapshot."""
+    name = f"twindelta_test_{uuid.uuid4().hex[:8]}"
+    url = create_pg_database(name)
+    try:
+        migrate(url)
+        engine = db.make_engine(url)
+        factory = sessionmaker(bind=engine, expire_on_commit=False)
+        with factory.begin() as s:
+            env = Environment(name="race", classes=["drill"], options={})
+            s.add(env)
+            s.flush()
+            snaps = [
+                Snapshot(environment_id=env.id, seq=seq, state="reconstructed", storage_prefix="x")
+                for seq in (1, 2)
+            ]
+            s.add_all(snaps)
+            job = Job(kind=JobKind.comparison, task_name="comparison.run", state="succeeded")
+            s.add(job)
+            s.flush()
+            comparison = Comparison(
+                environment_id=env.id,
+                before_id=snaps[0].id,
+                after_id=snaps[1].id,
+                job_id=job.id,
+                automatic=True,
+                state="succeeded",
+            )
+            comparison.changes.append(
+                Change(position=0, type="added", object_name="drill", instance_id=str(uuid.uuid4()))
+            )
+            s.add(comparison)
+            env.twin_seq, env.twin_snapshot_id = 1, snaps[0].id
+        env_id = env.id
+
+        first = factory()
+        first.begin()
+        assert twin.advance(first, env_id).seq == 2  # applied; not committed yet
+        second_done = threading.Event()
+        outcome: list[Any] = []
+
+        def second() -> None:
+            with factory.begin() as s:
+                outcome.append(twin.advance(s, env_id))
+            second_done.set()
+
+        thread = threading.Thread(target=second)
+        thread.start()
+        assert not second_done.wait(1.0)  # held on the environment row
+        first.commit()
+        first.close()
+        thread.join(10)
+        assert second_done.is_set() and outcome[0].seq == 2
+        with factory() as s:
+            poses = s.scalar(select(func.count()).select_from(InstancePose))
+            updates = s.scalars(
+                select(Event.data).where(
+                    Event.type == "twin.updated", Event.environment_id == env_id
+                )
+            ).all()
+        assert poses == 1
+        assert [u["seq"] for u in updates] == [2]
+        engine.dispose()
+    finally:
+        drop_pg_database(name)

@@ -1,5 +1,5 @@
 """``twindelta`` command line: ``serve`` (the embedded service: API + workers, no external
-servers), ``migrate``, ``create-key``, ``openapi``.
+servers), ``migrate``, ``create-key``, ``reencrypt-secrets``, ``openapi``.
 
 ``serve`` starts the same processes production runs (uvicorn, a Celery worker for the cpu
 queue, one for the webhooks queue, one for the maintenance queue with the beat schedule), as
@@ -162,6 +162,15 @@ def create_key(name: str, scopes: list[str]) -> str:
     return token
 
 
+def reencrypt_secrets() -> int:
+    """Re-encrypt the stored webhook secrets under the first key of TWINDELTA_SECRET_KEY."""
+    from app.core import webhooks
+    from app.core.db import transaction
+
+    with transaction() as session:
+        return webhooks.reencrypt_secrets(session, get_settings())
+
+
 def openapi_json() -> str:
     from app.main import create_app
 
@@ -179,6 +188,10 @@ def main(argv: list[str] | None = None) -> int:
     p_key = sub.add_parser("create-key", help="create an API key and print it")
     p_key.add_argument("--name", default="cli")
     p_key.add_argument("--scopes", default="admin", help="comma-separated: capture,read,admin")
+    sub.add_parser(
+        "reencrypt-secrets",
+        help="re-encrypt stored secrets under the first key of TWINDELTA_SECRET_KEY",
+    )
     p_api = sub.add_parser("openapi", help="print or write the OpenAPI document")
     p_api.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
@@ -186,6 +199,9 @@ def main(argv: list[str] | None = None) -> int:
         return serve(args.host, args.port, args.cpu_workers)
     if args.command == "migrate":
         migrate()
+        return 0
+    if args.command == "reencrypt-secrets":
+        print(f"re-encrypted {reencrypt_secrets()} webhook secrets")
         return 0
     if args.command == "create-key":
         print(create_key(args.name, args.scopes.split(",")))

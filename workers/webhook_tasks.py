@@ -1,6 +1,8 @@
-"""Thin webhook tasks on the ``webhooks`` queue. The schedule lives in the database
-(app/core/webhooks.py): ``webhooks.deliver`` makes one attempt and never sleeps; beat's
-``webhooks.dispatch`` sends every delivery whose next attempt has come due."""
+"""Thin webhook tasks. The schedule lives in the database (app/core/webhooks.py):
+``webhooks.deliver`` (``webhooks`` queue) makes one attempt, bounded by its deadline, and
+never sleeps; beat's ``webhooks.dispatch`` (``maintenance`` queue, another worker process, so
+deliveries that hang cannot hold it up) sends every delivery whose next attempt has come
+due."""
 
 from __future__ import annotations
 

@@ -99,4 +99,9 @@ def decrypt(settings: Settings, token: str) -> str:
 
 def reencrypt(settings: Settings, token: str) -> str:
     """``token`` under the newest key (after a key rotation)."""
-    return _box(keys(settings)).rotate(token.encode("ascii")).decode("ascii")
+    try:
+        return _box(keys(settings)).rotate(token.encode("ascii")).decode("ascii")
+    except (InvalidToken, ValueError) as exc:
+        raise SecretUnreadable(
+            "a stored secret cannot be decrypted with any key in TWINDELTA_SECRET_KEY"
+        ) from exc

@@ -19,13 +19,24 @@ Claiming. :func:`claim` takes a lease (``locked_until``) with a conditional UPDA
 the attempt counter, so two workers never send the same attempt; the counter is also the
 fencing token that :func:`record_attempt` checks before it changes the delivery.
 
-A deliver task is: ``claim`` (short transaction) → :func:`send` (no session open; resolves and
-checks the target again, since DNS can change) → ``record_attempt`` (short transaction).
+A deliver task is: ``claim`` (short transaction) → :func:`send` (no session open) →
+``record_attempt`` (short transaction).
+
+Hostile receivers and networks. :func:`send` gives each attempt one overall deadline
+(``Settings.webhook_timeout_s``: lookup, connect, TLS, request, response headers and excerpt),
+so a receiver that trickles one byte at a time cannot hold a worker thread past it; the lease
+is that deadline plus :data:`LEASE_MARGIN_S` and an attempt never runs into the margin, so a
+lease never expires under a live attempt. The host is resolved once per attempt, every address
+checked again (DNS can change since the subscription was made), and the connection goes to a
+checked address: no second lookup that a rebinding DNS server could answer differently, and no
+proxy from the environment. TLS verifies the certificate against the URL's host name.
 
 Signatures follow Standard Webhooks: ``webhook-id`` (the event id, the same on every retry),
 ``webhook-timestamp`` (unix seconds of the attempt) and ``webhook-signature:
 v1,<base64 HMAC-SHA256 of "{id}.{timestamp}.{body}">`` keyed with the base64-decoded secret
-after its ``whsec_`` prefix. :func:`verify_signature` is the receiver's side.
+after its ``whsec_`` prefix. After :func:`rotate_secret` the header carries one signature per
+valid secret, ``v1,<new> v1,<previous>``, until the overlap ends. :func:`verify_signature` is
+the receiver's side. Secrets are stored encrypted (:mod:`app.core.secretbox`).
 """
 
 from __future__ import annotations
@@ -281,6 +292,21 @@ def signing_secrets(
     if sub.previous_secret_encrypted and expires is not None and _aware(expires) > now:
         out.append(secretbox.decrypt(settings, sub.previous_secret_encrypted))
     return tuple(out)
+
+
+def reencrypt_secrets(session: Session, settings: Settings) -> int:
+    """Re-encrypt every stored signing secret under the newest TWINDELTA_SECRET_KEY (after
+    the key was changed to "new,old"); then the old key can be dropped. Returns how many."""
+    count = 0
+    for sub in session.scalars(select(WebhookSubscription)):
+        sub.secret_encrypted = secretbox.reencrypt(settings, sub.secret_encrypted)
+        if sub.previous_secret_encrypted:
+            sub.previous_secret_encrypted = secretbox.reencrypt(
+                settings, sub.previous_secret_encrypted
+            )
+        count += 1
+    session.flush()
+    return count
 
 
 def rotate_secret(
@@ -581,8 +607,10 @@ def claim(
 
 
 @lru_cache(maxsize=1)
-def _ssl_context() -> ssl.SSLContext:
-    """The verifying TLS context (certifi's CAs), built once: it costs ~50 ms."""
+def tls_context() -> ssl.SSLContext:
+    """The verifying TLS context, built once per process (it costs ~50 ms): certifi's CAs,
+    or the operator's from ``SSL_CERT_FILE`` / ``SSL_CERT_DIR`` (receivers behind a private
+    CA). Certificates are verified against the URL's host name."""
     return httpx.create_ssl_context()
 
 
@@ -755,7 +783,7 @@ def send(claim: Claim, settings: Settings) -> Outcome:
         request_headers = list(headers.items())
         with (
             httpcore.ConnectionPool(
-                ssl_context=_ssl_context(), network_backend=backend, max_connections=1
+                ssl_context=tls_context(), network_backend=backend, max_connections=1
             ) as pool,
             pool.stream(
                 "POST",

@@ -14,12 +14,13 @@ import itertools
 import json
 import select as io_select
 import socket
+import ssl
 import stat
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
-from datetime import timedelta
+from datetime import UTC, datetime, timedelta
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
@@ -27,6 +28,10 @@ from typing import Any
 import pytest
 from alembic import command
 from alembic.config import Config
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from pydantic import SecretStr, ValidationError
 from sqlalchemy import select, text
 from sqlalchemy.orm import Session, sessionmaker
@@ -66,6 +71,7 @@ class Receiver:
 
     port: int = 0
     host: str = "127.0.0.1"
+    tls: ssl.SSLContext | None = None  # serve https with this context
     hits: list[Hit] = field(default_factory=list)
     plans: dict[str, list[int]] = field(default_factory=dict)
     delays: dict[str, list[float]] = field(default_factory=dict)
@@ -108,6 +114,8 @@ class Receiver:
 
         ThreadingHTTPServer.allow_reuse_address = True
         self.server = ThreadingHTTPServer((self.host, self.port), Handler)
+        if self.tls is not None:
+            self.server.socket = self.tls.wrap_socket(self.server.socket, server_side=True)
         self.server.daemon_threads = True
         self.port = self.server.server_address[1]
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
@@ -122,7 +130,8 @@ class Receiver:
             self.server = None
 
     def url(self, path: str = "/hook") -> str:
-        return f"http://{self.host}:{self.port}{path}"
+        scheme = "https" if self.tls is not None else "http"
+        return f"{scheme}://{self.host}:{self.port}{path}"
 
     def plan(self, path: str, statuses: list[int], delays: list[float] | None = None) -> None:
         with self.lock:
@@ -878,22 +887,29 @@ def test_settings_refuse_a_missing_or_placeholder_secret_key(
     assert Settings().secret_key is None  # embedded: the generated key file
 
 
-def test_a_changed_secret_key_keeps_the_old_one_after_a_comma(
+def test_a_changed_secret_key_keeps_the_old_one_after_a_comma_then_reencrypts(
     session_factory: sessionmaker[Session], webhook_settings: None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     old_key, new_key = "a1b2c3d4e5f60718293a4b5c6d7e8f90", "0f1e2d3c4b5a69788796a5b4c3d2e1f0"
     monkeypatch.setenv("TWINDELTA_SECRET_KEY", old_key)
     get_settings.cache_clear()
     sub_id, secret = subscribe(session_factory, "http://127.0.0.1:9/hook")
+    only_new = get_settings().model_copy(update={"secret_key": SecretStr(new_key)})
+
+    def read(settings: Settings) -> str:
+        with session_factory() as s:
+            sub = s.get(WebhookSubscription, sub_id)
+            assert sub is not None
+            return webhooks.current_secret(settings, sub)
+
+    with pytest.raises(secretbox.SecretUnreadable):
+        read(only_new)
     monkeypatch.setenv("TWINDELTA_SECRET_KEY", f"{new_key},{old_key}")
     get_settings.cache_clear()
-    with session_factory() as s:
-        sub = s.get(WebhookSubscription, sub_id)
-        assert sub is not None
-        assert webhooks.current_secret(get_settings(), sub) == secret
-        token = secretbox.reencrypt(get_settings(), sub.secret_encrypted)
-    only_new = get_settings().model_copy(update={"secret_key": SecretStr(new_key)})
-    assert secretbox.decrypt(only_new, token) == secret
+    assert read(get_settings()) == secret  # the old key still decrypts
+    with db.transaction() as s:  # `twindelta reencrypt-secrets`
+        assert webhooks.reencrypt_secrets(s, get_settings()) >= 1
+    assert read(only_new) == secret  # the old key can go now
 
 
 def test_rotated_secret_signs_with_both_during_the_overlap_then_only_the_new(
@@ -992,3 +1008,111 @@ def test_migration_encrypts_existing_plain_secrets_and_downgrade_restores_them(
     finally:
         engine.dispose()
         get_settings.cache_clear()
+
+
+def make_tls(folder: Path, names: list[str]) -> tuple[Path, ssl.SSLContext, list[str]]:
+    """A test CA (its PEM file) and a server context with a certificate for ``names``
+    signed by it; the list collects the SNI names clients send."""
+    key_usage = x509.KeyUsage(
+        digital_signature=True,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        key_cert_sign=True,
+        crl_sign=True,
+        encipher_only=False,
+        decipher_only=False,
+    )
+    now = datetime.now(UTC)
+    ca_key, leaf_key = (
+        ec.generate_private_key(ec.SECP256R1()),
+        ec.generate_private_key(ec.SECP256R1()),
+    )
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "twindelta test CA")])
+
+    def builder(subject: x509.Name, public_key: Any) -> x509.CertificateBuilder:
+        return (
+            x509.CertificateBuilder()
+            .subject_name(subject)
+            .issuer_name(ca_name)
+            .public_key(public_key)
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(now - timedelta(minutes=5))
+            .not_valid_after(now + timedelta(days=1))
+            .add_extension(x509.SubjectKeyIdentifier.from_public_key(public_key), False)
+            .add_extension(
+                x509.AuthorityKeyIdentifier.from_issuer_public_key(ca_key.public_key()), False
+            )
+        )
+
+    ca = (
+        builder(ca_name, ca_key.public_key())
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), True)
+        .add_extension(key_usage, True)
+        .sign(ca_key, hashes.SHA256())
+    )
+    leaf = (
+        builder(
+            x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, names[0])]), leaf_key.public_key()
+        )
+        .add_extension(x509.SubjectAlternativeName([x509.DNSName(n) for n in names]), False)
+        .add_extension(x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH]), False)
+        .sign(ca_key, hashes.SHA256())
+    )
+    ca_file, cert_file, key_file = folder / "ca.pem", folder / "leaf.pem", folder / "leaf.key"
+    ca_file.write_bytes(ca.public_bytes(serialization.Encoding.PEM))
+    cert_file.write_bytes(leaf.public_bytes(serialization.Encoding.PEM))
+    key_file.write_bytes(
+        leaf_key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.PKCS8,
+            serialization.NoEncryption(),
+        )
+    )
+    server = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    server.load_cert_chain(cert_file, key_file)
+    sni: list[str] = []
+    server.sni_callback = lambda _sock, name, _ctx: sni.append(name or "") or None
+    return ca_file, server, sni
+
+
+@pytest.mark.parametrize("cert_name", ["hooks.tls.test", "someone-else.test"])
+def test_https_to_the_pinned_address_keeps_sni_and_certificate_checks_on_the_name(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    cert_name: str,
+) -> None:
+    """The connection goes to the checked IP, but TLS is the name's: SNI carries it and the
+    certificate must be valid for it (a certificate for another name is refused)."""
+    ca_file, server_tls, sni = make_tls(tmp_path, [cert_name])
+    receiver = Receiver(tls=server_tls).start()
+    real_getaddrinfo = socket.getaddrinfo
+
+    def resolver(host: Any, *args: Any, **kwargs: Any) -> Any:
+        return real_getaddrinfo("127.0.0.1" if host == "hooks.tls.test" else host, *args, **kwargs)
+
+    monkeypatch.setattr(socket, "getaddrinfo", resolver)
+    monkeypatch.setenv("SSL_CERT_FILE", str(ca_file))
+    webhooks.tls_context.cache_clear()
+    try:
+        env = make_env(session_factory)
+        subscribe(session_factory, f"https://hooks.tls.test:{receiver.port}/hook")
+        record(session_factory, env)
+        [d] = deliveries(session_factory)
+        result = deliver_once(d.id)
+        [attempt] = attempts_of(session_factory, d.id)
+        if cert_name == "hooks.tls.test":
+            assert result == "succeeded", attempt.error
+            [hit] = receiver.on("/hook")
+            assert hit.headers["host"] == f"hooks.tls.test:{receiver.port}"
+        else:
+            assert result == "retrying" and receiver.on("/hook") == []
+            assert "certificate" in (attempt.error or "").lower(), attempt.error
+        assert sni == ["hooks.tls.test"]
+    finally:
+        receiver.stop()
+        webhooks.tls_context.cache_clear()

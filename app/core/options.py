@@ -36,15 +36,52 @@ def check_environment_options(options: Any) -> dict[str, Any]:
         return {}
     if not isinstance(options, dict):
         raise InvalidInput(f"options must be an object, got {show(options)}")
-    unknown = sorted(set(options) - set(STAGES))
+    sections = (*STAGES, "retention")
+    unknown = sorted(set(options) - set(sections))
     if unknown:
         raise InvalidInput(
-            f"unknown options section(s) {', '.join(unknown)}; known: {', '.join(STAGES)}"
+            f"unknown options section(s) {', '.join(unknown)}; known: {', '.join(sections)}"
         )
     return {
-        stage: check_stage_options(stage, value, f"options.{stage}")
+        stage: (
+            check_retention_options(value, f"options.{stage}")
+            if stage == "retention"
+            else check_stage_options(stage, value, f"options.{stage}")
+        )
         for stage, value in options.items()
     }
+
+
+# name: (whole numbers only, largest value, what it is); 36,500 days is a century
+RETENTION_OPTIONS: dict[str, tuple[bool, int, str]] = {
+    "images_after_days": (False, 36_500, "a number of days"),
+    "keep_last_snapshots": (True, INT_LIMIT, "a whole number"),
+}
+
+
+def check_retention_options(options: Any, where: str = "options.retention") -> dict[str, Any]:
+    """An environment's retention policy, overriding the settings' for it (app/core/retention):
+    ``images_after_days`` (a number of days, 0: keep the photos) and ``keep_last_snapshots``
+    (a whole number, 0: keep every snapshot), each optional and at least 0."""
+    if options is None:
+        return {}
+    if not isinstance(options, dict):
+        raise InvalidInput(f"{where} must be an object, got {show(options)}")
+    for name, value in options.items():
+        spec = RETENTION_OPTIONS.get(name)
+        if spec is None:
+            raise InvalidInput(
+                f"{where}: unknown option {show(name)}; known: {', '.join(RETENTION_OPTIONS)}"
+            )
+        whole, largest, what = spec
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int if whole else int | float)
+            or not math.isfinite(value)
+            or not 0 <= value <= largest
+        ):
+            raise InvalidInput(f"{where}.{name}: {what} from 0 to {largest}, got {show(value)}")
+    return dict(options)
 
 
 def check_stage_options(stage: str, options: Any, where: str = "options") -> dict[str, Any]:

@@ -287,7 +287,8 @@ def delete_environment(session: Session, storage: LocalStorage, environment_id: 
 @dataclass(frozen=True)
 class Policy:
     """``images_after_days``: delete the photos of snapshots older than this (0: never).
-    ``keep_last_snapshots``: keep this many newest snapshots per environment (0: all)."""
+    ``keep_last_snapshots``: keep this many newest snapshots per environment (0: all).
+    The settings give the default; an environment's ``options.retention`` overrides it."""
 
     images_after_days: float = 0.0
     keep_last_snapshots: int = 0
@@ -299,68 +300,86 @@ class Policy:
             keep_last_snapshots=settings.retention_keep_last_snapshots,
         )
 
+    def for_environment(self, options: dict[str, Any] | None) -> Policy:
+        """This policy with the environment's own ``retention`` options in place."""
+        own = (options or {}).get("retention") or {}
+        return Policy(
+            images_after_days=float(own.get("images_after_days", self.images_after_days)),
+            keep_last_snapshots=int(own.get("keep_last_snapshots", self.keep_last_snapshots)),
+        )
+
 
 def apply_policy(
     session: Session, storage: LocalStorage, policy: Policy, now: datetime | None = None
 ) -> dict[str, int]:
-    """One retention pass over every environment; returns counts. Snapshots in use (see
-    :func:`delete_snapshot`) are skipped and tried again next time."""
+    """One retention pass over every environment, each with ``policy`` and its own
+    overrides; returns counts. Snapshots in use (see :func:`delete_snapshot`) are skipped
+    and tried again next time; at most MAX_DELETIONS_PER_RUN of each kind per pass."""
     now = now or utcnow()
     counts = {"snapshots_deleted": 0, "images_deleted": 0, "skipped_in_use": 0}
-    if policy.keep_last_snapshots > 0:
-        _keep_last(session, storage, policy.keep_last_snapshots, counts)
-    if policy.images_after_days > 0:
-        cutoff = now - timedelta(days=policy.images_after_days)
-        _drop_images(session, storage, cutoff, now, counts)
+    for env in session.scalars(select(Environment).order_by(Environment.created_at)).all():
+        own = policy.for_environment(env.options)
+        if own.keep_last_snapshots > 0:
+            _keep_last(session, storage, env, own.keep_last_snapshots, counts)
+        if own.images_after_days > 0:
+            cutoff = now - timedelta(days=own.images_after_days)
+            _drop_images(session, storage, env.id, cutoff, now, counts)
     return counts
 
 
-def _keep_last(session: Session, storage: LocalStorage, keep: int, counts: dict[str, int]) -> None:
-    """Beyond the ``keep`` newest snapshots of each environment, delete those that are final
-    and that the twin has already taken into account (``seq <= twin_seq``: a snapshot the
-    chain has not reached yet is never dropped unseen), except the protected ones."""
-    for env in session.scalars(select(Environment)).all():
-        live = session.scalars(
-            select(Snapshot)
-            .where(Snapshot.environment_id == env.id, Snapshot.state != SnapshotState.deleted)
-            .order_by(Snapshot.seq.desc())
-        ).all()
-        keep_ids = protected(session, env.id)
-        for snap in live[keep:]:
-            if counts["snapshots_deleted"] >= MAX_DELETIONS_PER_RUN:
-                return
-            if (
-                snap.state not in FINAL_SNAPSHOT_STATES
-                or snap.id in keep_ids
-                or snap.seq > (env.twin_seq or 0)
-            ):
-                continue
-            try:
-                delete_snapshot(session, storage, snap.id)
-            except Conflict:  # refused before anything was written
-                counts["skipped_in_use"] += 1
-                continue
-            counts["snapshots_deleted"] += 1
+def _keep_last(
+    session: Session, storage: LocalStorage, env: Environment, keep: int, counts: dict[str, int]
+) -> None:
+    """Beyond the ``keep`` newest snapshots of ``env``, delete those that are final and that
+    the twin has already taken into account (``seq <= twin_seq``: a snapshot the chain has
+    not reached yet is never dropped unseen), except the protected ones."""
+    live = session.scalars(
+        select(Snapshot)
+        .where(Snapshot.environment_id == env.id, Snapshot.state != SnapshotState.deleted)
+        .order_by(Snapshot.seq.desc())
+    ).all()
+    keep_ids = protected(session, env.id)
+    for snap in live[keep:]:
+        if counts["snapshots_deleted"] >= MAX_DELETIONS_PER_RUN:
+            return
+        if (
+            snap.state not in FINAL_SNAPSHOT_STATES
+            or snap.id in keep_ids
+            or snap.seq > (env.twin_seq or 0)
+        ):
+            continue
+        try:
+            delete_snapshot(session, storage, snap.id)
+        except Conflict:  # refused before anything was written
+            counts["skipped_in_use"] += 1
+            continue
+        counts["snapshots_deleted"] += 1
 
 
 def _drop_images(
     session: Session,
     storage: LocalStorage,
+    environment_id: str,
     cutoff: datetime,
     now: datetime,
     counts: dict[str, int],
 ) -> None:
-    """Delete the photos of final snapshots created before ``cutoff``. Comparisons use the
-    cloud, the cameras and the detection rows, never the photos, so they still run."""
+    """Delete the photos of the environment's final snapshots created before ``cutoff``.
+    Comparisons use the cloud, the cameras and the detection rows, never the photos, so
+    they still run."""
+    room = MAX_DELETIONS_PER_RUN - counts["images_deleted"]
+    if room <= 0:
+        return
     old = session.scalars(
         select(Snapshot)
         .where(
+            Snapshot.environment_id == environment_id,
             Snapshot.state.in_(FINAL_SNAPSHOT_STATES),
             Snapshot.images_deleted_at.is_(None),
             Snapshot.created_at < cutoff,
         )
         .order_by(Snapshot.created_at)
-        .limit(MAX_DELETIONS_PER_RUN)
+        .limit(room)
         .with_for_update(skip_locked=True)
     ).all()
     for snap in old:

@@ -92,7 +92,7 @@ class Settings(BaseSettings):
     # snapshots of each environment are kept (never the newest reconstructed one). Work
     # folders of finished jobs go at once; upload staging and orphaned files left by killed
     # processes once older than ``stale_files_after_s``.
-    retention_images_after_days: float = Field(default=0.0, ge=0)
+    retention_images_after_days: float = Field(default=0.0, ge=0, le=36_500)
     retention_keep_last_snapshots: int = Field(default=0, ge=0)
     retention_interval_s: float = Field(default=3600.0, gt=0)
     stale_files_after_s: float = Field(default=24 * 3600.0, gt=0)

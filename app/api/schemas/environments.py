@@ -24,8 +24,10 @@ class EnvironmentCreate(BaseModel):
     options: dict[str, Any] | None = Field(
         default=None,
         description='{"reconstruct": {"preset": "default", ...}, "compare": {"threshold": '
-        '{"kind": "mean_std", "k": 1.0}, ...}}: presets and option overrides of the two '
-        "stages; an unknown preset or option or a value of the wrong type is a 422",
+        '{"kind": "mean_std", "k": 1.0}, ...}, "retention": {"images_after_days": 30, '
+        '"keep_last_snapshots": 10}}: presets and option overrides of the two stages, and '
+        "this environment's retention policy over the server's (0: keep); an unknown preset "
+        "or option or a value of the wrong type is a 422",
     )
 
 

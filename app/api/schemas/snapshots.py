@@ -26,6 +26,8 @@ class SnapshotRead(Model):
     job: str | None
     comparison: str | None
     twin_update: TwinUpdate | None = None  # baseline | applied | skipped; None until its turn
+    # when retention deleted the photos (the cloud, cameras and detections stay)
+    images_deleted_at: datetime | None = None
     links: dict[str, str]
 
     @classmethod
@@ -52,6 +54,7 @@ class SnapshotRead(Model):
             job=job.id if job else None,
             comparison=comparison.id if comparison else None,
             twin_update=TwinUpdate(snap.twin_update) if snap.twin_update else None,
+            images_deleted_at=snap.images_deleted_at,
             links=links,
         )
 

@@ -4,15 +4,18 @@ newest reconstructed snapshot, 403 without the admin scope."""
 
 from __future__ import annotations
 
+from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.core import retention
 from app.core.enums import JobState, SnapshotState
-from app.core.models import Job, Snapshot
+from app.core.models import Job, Snapshot, utcnow
 from app.core.settings import get_settings
+from app.core.storage import LocalStorage
 from tests.app.api.test_snapshots_upload import as_parts, capture
 from tests.app.conftest import Keys
 
@@ -122,3 +125,50 @@ def test_delete_environment(
     assert [s["id"] for s in r.json()] == [kept["snapshot"]["id"]]
     # the name is free again
     assert _environment(client, keys) != env_id
+
+
+def test_environment_retention_options_are_checked(client: TestClient, keys: Keys) -> None:
+    good = {"images_after_days": 30, "keep_last_snapshots": 10}
+    r = client.post(
+        "/v1/environments",
+        json={"name": "line-11", "classes": ["bowl"], "options": {"retention": good}},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 201, r.text
+    assert r.json()["options"]["retention"] == good
+    for bad, named in (
+        ({"keep_last_snapshots": -1}, "keep_last_snapshots"),
+        ({"keep_last_snapshots": 2.5}, "keep_last_snapshots"),
+        ({"keep_last_snapshots": True}, "keep_last_snapshots"),
+        ({"images_after_days": "30"}, "images_after_days"),
+        ({"images_after_days": 1e9}, "images_after_days"),
+        ({"keep_images": 3}, "keep_images"),
+        ([1], "options.retention"),
+    ):
+        r = client.post(
+            "/v1/environments",
+            json={"name": "line-12", "classes": ["bowl"], "options": {"retention": bad}},
+            headers=keys.headers(),
+        )
+        assert r.status_code == 422, (bad, r.text)
+        assert named in r.json()["detail"], (bad, r.json())
+
+
+def test_snapshot_says_when_its_photos_were_deleted(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session]
+) -> None:
+    env_id = _environment(client, keys)
+    upload = _upload(client, keys, env_id)
+    snap_id = upload["snapshot"]["id"]
+    _finish(session_factory, upload["job"]["id"], snap_id, SnapshotState.reconstructed)
+    url = f"/v1/snapshots/{snap_id}"
+    assert client.get(url, headers=keys.headers("read")).json()["images_deleted_at"] is None
+    storage = LocalStorage(get_settings().resolved_storage_dir)
+    later = utcnow() + timedelta(days=31)
+    with session_factory.begin() as s:
+        counts = retention.apply_policy(s, storage, retention.Policy(images_after_days=30), later)
+    assert counts["images_deleted"] == 1
+    body = client.get(url, headers=keys.headers("read")).json()
+    assert body["images_deleted_at"] is not None and body["state"] == "reconstructed"
+    assert "pointcloud" in body["links"]
+    assert not (_files(snap_id) / "images").exists() and (_files(snap_id) / "labels").is_dir()

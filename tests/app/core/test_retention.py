@@ -488,3 +488,20 @@ def test_retention_task_applies_the_settings_policy_and_cleans_up(
     assert not storage.exists(f"snapshots/{history.other_snap}/images")
     assert not storage.exists(f"snapshots/{history.snaps[0]}")
     assert storage.exists(f"snapshots/{history.snaps[2]}/images/a.jpg")
+
+
+def test_an_environments_own_policy_overrides_the_settings(
+    session_factory: sessionmaker[Session], storage: LocalStorage, history: History
+) -> None:
+    with session_factory.begin() as s:
+        s.get_one(Environment, history.env).options = {"retention": {"keep_last_snapshots": 2}}
+        s.get_one(Environment, history.other_env).options = {"retention": {"images_after_days": 0}}
+    policy = retention.Policy(images_after_days=10, keep_last_snapshots=1)
+    with session_factory.begin() as s:
+        counts = retention.apply_policy(s, storage, policy)
+    # env: keeps 2 (seq 3, 2), drops the photos of seq 2 (20 days); other: keeps its photos
+    assert counts["snapshots_deleted"] == 1 and counts["images_deleted"] == 1
+    with session_factory.begin() as s:
+        assert [x.seq for x in snapshots.history(s, history.env)] == [3, 2]
+    assert not storage.exists(f"snapshots/{history.snaps[1]}/images")
+    assert storage.exists(f"snapshots/{history.other_snap}/images/a.jpg")

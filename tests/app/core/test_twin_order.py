@@ -283,6 +283,50 @@ def test_a_failed_comparison_blocks_the_chain_until_retried(
     ]
 
 
+def test_a_comparison_that_cannot_succeed_is_left_behind_by_deleting_its_snapshot(
+    client: TestClient,
+    keys: Keys,
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The way out of a comparison that fails whatever is retried: delete the snapshot it
+    compares; the chain skips the deleted snapshot on the record and compares the next."""
+    env_id = make_env(client, keys)
+    snaps = [upload(client, keys, env_id, scene) for scene in SCENES]
+    for snap_id in snaps:
+        assert snapshot_glue.run(snapshot_job(session_factory, snap_id)) == "succeeded"
+
+    def broken(*_args: Any, **_kwargs: Any) -> Any:
+        raise PipelineError("this capture cannot be compared", code="FakeFailure")
+
+    monkeypatch.setattr(comparison_glue, "compare_snapshots", broken)
+    [(_seq, job_id)] = queued_comparisons(session_factory)
+    assert comparison_glue.run(job_id) == "failed"
+    read = keys.headers("read")
+    assert client.get(f"/v1/environments/{env_id}", headers=read).json()["twin"]["status"] == (
+        "blocked"
+    )
+
+    r = client.delete(f"/v1/snapshots/{snaps[1]}", headers=keys.headers())
+    assert r.status_code == 204, r.text
+    fake_pipeline.install(monkeypatch.setattr)
+    assert run_comparisons_newest_first(session_factory) == [3]
+    assert automatic_pairs(client, keys, env_id) == [(1, 3)]
+    assert twin_scene(client, keys, env_id) == {"drill": 0.4, "mug": 0.7}
+    updates = [
+        (e["type"], e["seq"], e.get("outcome")) for e in twin_events(session_factory, env_id)
+    ]
+    assert updates == [
+        ("twin.updated", 1, "baseline"),
+        ("twin.blocked", 2, None),
+        ("twin.updated", 2, "skipped"),
+        ("twin.updated", 3, "applied"),
+    ]
+    env = client.get(f"/v1/environments/{env_id}", headers=read).json()
+    assert env["twin"]["seq"] == 3 and env["twin"]["status"] == "current"
+
+
 def test_migration_settles_existing_environments_up_to_their_first_unapplied_snapshot(
     tmp_path: Path,
 ) -> None:

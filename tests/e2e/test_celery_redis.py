@@ -142,7 +142,7 @@ def test_redis_restart_mid_job_finishes_once(
     port = free_port()
     procs.api(port)
     procs.worker("cpu", "cpu", "--include", "tests.e2e.slow_jobs")
-    procs.worker("beat", "webhooks", "-B", "-s", str(tmp_path / "beat-schedule"))
+    procs.worker("beat", "maintenance", "-B", "-s", str(tmp_path / "beat-schedule"))
     client = api_client(port)
     torus = o3d.geometry.TriangleMesh.create_torus(0.2, 0.05, 200, 100)
     obj = upload_object(client, "torus", mesh_bytes(tmp_path, torus, "torus"))

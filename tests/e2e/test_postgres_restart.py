@@ -238,7 +238,7 @@ def test_postgres_restart_mid_job_in_the_service_processes(
     port = free_port()
     procs.api(port)
     procs.worker("cpu", "cpu", "--include", "tests.e2e.slow_jobs")
-    procs.worker("beat", "webhooks", "-B", "-s", str(tmp_path / "beat-schedule"))
+    procs.worker("beat", "maintenance", "-B", "-s", str(tmp_path / "beat-schedule"))
     client = api_client(port)
     mesh = tmp_path / "torus.ply"
     o3d.io.write_triangle_mesh(str(mesh), o3d.geometry.TriangleMesh.create_torus(0.2, 0.05))

@@ -413,7 +413,9 @@ def cleanup_files(
     work = storage.root / ".work"
     names = _children(work)
     if names:
-        states = dict(session.execute(select(Job.id, Job.state).where(Job.id.in_(names))).all())
+        states: dict[str, str] = {}
+        for chunk in _chunks(names, 500):
+            states.update(session.execute(select(Job.id, Job.state).where(Job.id.in_(chunk))).all())
         for name in names:
             state = states.get(name)
             if state is None or JobState(state).is_final:
@@ -424,7 +426,13 @@ def cleanup_files(
     objects_dir = storage.root / "objects"
     names = _children(objects_dir)
     if names:
-        known = set(session.scalars(select(LibraryObject.id).where(LibraryObject.id.in_(names))))
+        known = {
+            object_id
+            for chunk in _chunks(names, 500)
+            for object_id in session.scalars(
+                select(LibraryObject.id).where(LibraryObject.id.in_(chunk))
+            )
+        }
         for name in names:
             if name not in known and _idle_s(objects_dir / name, now) > max_age_s:
                 shutil.rmtree(objects_dir / name, ignore_errors=True)

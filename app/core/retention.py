@@ -16,8 +16,9 @@ What deleting a snapshot does (docs/operations.md says the same to operators):
 
 It is refused (409) while a job that uses it is queued or running (its reconstruction, a
 comparison it takes part in, or a newer snapshot's reconstruction that may align to it),
-and for the newest reconstructed snapshot of its environment: the next capture is compared
-with it and the twin stands at its state (delete the environment to drop everything).
+and for the twin's current snapshot and the newest reconstructed one (see
+:func:`protected`; delete the environment to drop everything). Afterwards the twin's chain
+is advanced, so it skips the snapshot if it had not reached it yet.
 
 Rows are deleted in the caller's transaction; files only once that transaction commits (a
 rollback keeps them). Files whose rows are gone but which survived a crash between the

@@ -35,4 +35,9 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     403: {"model": ErrorOut, "description": "the key lacks the scope"},
     404: {"model": ErrorOut, "description": "not found"},
     422: {"model": ErrorOut, "description": "invalid input"},
+    429: {
+        "model": ErrorOut,
+        "description": "too many unknown API keys from this address (Retry-After: seconds)",
+        "headers": {"Retry-After": {"schema": {"type": "integer"}}},
+    },
 }

@@ -40,7 +40,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any, BinaryIO
 
 from PIL import Image, UnidentifiedImageError
-from sqlalchemy import func, select
+from sqlalchemy import event, func, select
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -1091,7 +1091,27 @@ def _insert(
     except BaseException:
         storage.delete_prefix(prefix)
         raise
+    # The files are in place before the row is committed (a reader never sees a row without
+    # its files); if the transaction rolls back instead (a failed commit, an error after
+    # this), they go with it.
+    session.info.setdefault(_MOVED_IN, []).append((storage, prefix))
     return Ingested(snapshot=snap, job=job, created=True)
+
+
+_MOVED_IN = "twindelta_ingest_moved_in"
+
+
+@event.listens_for(Session, "after_commit")
+def _keep_moved_in(session: Session) -> None:
+    if not session.in_nested_transaction():
+        session.info.pop(_MOVED_IN, None)
+
+
+@event.listens_for(Session, "after_soft_rollback")
+def _remove_moved_in(session: Session, previous_transaction: Any) -> None:
+    if previous_transaction.parent is None:  # the outermost rollback, not a SAVEPOINT's
+        for storage, prefix in session.info.pop(_MOVED_IN, []):
+            storage.delete_prefix(prefix)
 
 
 # --- the worker's ingest stage --------------------------------------------------------------

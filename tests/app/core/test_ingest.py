@@ -228,3 +228,41 @@ def test_probe_image_checks_header_before_decoding() -> None:
     with pytest.raises(DomainError) as err:
         ingest.probe_image(io.BytesIO(png_claiming(1000, 1000)), "b.png", 10**7)
     assert err.value.code == "InvalidImage" and "b.png: pixel data ends early" in err.value.detail
+
+
+def test_an_upload_whose_transaction_rolls_back_leaves_no_files(
+    session: Session, storage: LocalStorage, env_id: str
+) -> None:
+    """The files are moved in before the commit; a failed commit (here: a rollback after
+    create_snapshot returned) takes them away again, so no folder is left without a row."""
+    result = store(session, storage, env_id, capture())
+    prefix = result.snapshot.storage_prefix
+    assert storage.exists(f"{prefix}/images/a0.jpg")
+    session.rollback()
+    assert not storage.exists(prefix)
+    assert list((storage.root / "snapshots").iterdir()) == []
+    staging = storage.root / ".tmp"
+    assert not staging.exists() or list(staging.iterdir()) == []
+
+
+def test_sweep_staging_removes_only_abandoned_folders(storage: LocalStorage) -> None:
+    import fcntl
+    import os
+
+    base = storage.root / ".tmp"
+    base.mkdir(parents=True, exist_ok=True)
+    # an upload in progress in another process: its lock is held
+    (base / "live").mkdir()
+    live = os.open(base / "live.lock", os.O_CREAT | os.O_RDWR)
+    fcntl.flock(live, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    # an upload whose process died: the folder and its (free) lock file remain
+    (base / "dead" / "images").mkdir(parents=True)
+    (base / "dead" / "images" / "a.jpg").write_bytes(b"x" * 1000)
+    (base / "dead.lock").touch()
+    # a fresh folder without a lock (another use of .tmp): left alone
+    (base / "probe").mkdir()
+    try:
+        assert ingest.sweep_staging(storage) == 1
+        assert sorted(p.name for p in base.iterdir()) == ["live", "live.lock", "probe"]
+    finally:
+        os.close(live)

@@ -153,12 +153,12 @@ def serve(host: str, port: int, cpu_concurrency: int) -> int:
     return status
 
 
-def create_key(name: str, scopes: list[str]) -> str:
+def create_key(name: str, scopes: list[str], environment_ids: list[str] | None = None) -> str:
     from app.core import auth
     from app.core.db import transaction
 
     with transaction() as session:
-        _row, token = auth.create_key(session, name, scopes)
+        _row, token = auth.create_key(session, name, scopes, environment_ids=environment_ids)
     return token
 
 
@@ -187,7 +187,13 @@ def main(argv: list[str] | None = None) -> int:
     sub.add_parser("migrate", help="alembic upgrade head on the configured database")
     p_key = sub.add_parser("create-key", help="create an API key and print it")
     p_key.add_argument("--name", default="cli")
-    p_key.add_argument("--scopes", default="admin", help="comma-separated: capture,read,admin")
+    p_key.add_argument(
+        "--scopes", default="admin", help="comma-separated: capture,read,metrics,admin"
+    )
+    p_key.add_argument(
+        "--environments",
+        help="comma-separated environment ids the key is limited to (default: every one)",
+    )
     sub.add_parser(
         "reencrypt-secrets",
         help="re-encrypt stored secrets under the first key of TWINDELTA_SECRET_KEY",
@@ -204,7 +210,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"re-encrypted {reencrypt_secrets()} webhook secrets")
         return 0
     if args.command == "create-key":
-        print(create_key(args.name, args.scopes.split(",")))
+        envs = args.environments.split(",") if args.environments else None
+        print(create_key(args.name, args.scopes.split(","), envs))
         return 0
     text = openapi_json()
     if args.out:

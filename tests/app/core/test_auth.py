@@ -11,8 +11,9 @@ import pytest
 from alembic import command
 from alembic.config import Config
 from sqlalchemy import create_engine, select, text
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
+from app import cli
 from app.core import auth, environments
 from app.core.enums import Scope
 from app.core.errors import Conflict, Forbidden, InvalidInput, NotFound, TooManyRequests
@@ -143,3 +144,15 @@ def test_migration_replaces_stored_clear_prefixes(tmp_path: Path) -> None:
     with engine.connect() as conn:
         assert conn.execute(text("SELECT prefix FROM api_keys")).scalar() == "td_0f1e2d3c"
     engine.dispose()
+
+
+def test_cli_creates_a_key_limited_to_environments(
+    session_factory: sessionmaker[Session], capsys: pytest.CaptureFixture[str]
+) -> None:
+    with session_factory.begin() as s:
+        env = environments.create(s, "one", ["a"], None, {}).id
+    argv = ["create-key", "--scopes", "capture,read", "--environments", env]
+    assert cli.main(argv) == 0
+    token = capsys.readouterr().out.strip()
+    with session_factory() as s:
+        assert auth.authenticate(s, token, Scope.capture).environment_ids == (env,)

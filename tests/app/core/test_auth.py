@@ -5,6 +5,7 @@ migration that replaces stored clear prefixes."""
 from __future__ import annotations
 
 import hashlib
+import uuid
 from pathlib import Path
 
 import pytest
@@ -18,6 +19,7 @@ from app.core import auth, environments
 from app.core.enums import Scope
 from app.core.errors import Conflict, Forbidden, InvalidInput, NotFound, TooManyRequests
 from app.core.models import ApiKey
+from tests.app.conftest import create_pg_database, drop_pg_database
 from tests.conftest import REPO_ROOT
 
 BOOTSTRAP = "my-own-bootstrap-admin-key-2026"
@@ -121,8 +123,18 @@ def test_failed_key_limiter_memory_is_bounded() -> None:
     assert limiter.tracked() <= 100
 
 
-def test_migration_replaces_stored_clear_prefixes(tmp_path: Path) -> None:
-    url = f"sqlite:///{tmp_path / 'm.db'}"
+@pytest.mark.parametrize("dialect", ["sqlite", "postgres"])
+def test_migration_replaces_stored_clear_prefixes(tmp_path: Path, dialect: str) -> None:
+    name = f"twindelta_mig_{uuid.uuid4().hex[:8]}"
+    url = create_pg_database(name) if dialect == "postgres" else f"sqlite:///{tmp_path / 'm.db'}"
+    try:
+        check_prefix_migration(url)
+    finally:
+        if dialect == "postgres":
+            drop_pg_database(name)
+
+
+def check_prefix_migration(url: str) -> None:
     config = Config(str(REPO_ROOT / "alembic.ini"))
     config.attributes["url"] = url
     command.upgrade(config, "0001")

@@ -33,7 +33,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 from pydantic import SecretStr, ValidationError
-from sqlalchemy import select, text
+from sqlalchemy import select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import db, events, secretbox, webhooks
@@ -761,13 +761,37 @@ def test_drip_receiver_attempt_ends_at_its_overall_deadline(
         drip.stop()
 
 
-def test_lease_outlives_the_attempt_deadline(webhook_settings: None) -> None:
-    """A claimed attempt always ends (its deadline) well before its lease, so no other worker
-    can take the delivery while the attempt is still talking to the receiver."""
+def test_an_attempt_never_runs_into_its_lease_margin(
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    webhook_settings: None,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The lease is the attempt's deadline plus a margin, and an attempt stops before the
+    margin however late it started sending: no other worker can claim the delivery (and
+    send the event again) while this attempt still talks to the receiver."""
+    monkeypatch.setenv("TWINDELTA_WEBHOOK_TIMEOUT_S", "8")
+    get_settings.cache_clear()
     settings = get_settings()
-    for timeout in (0.5, 3.0, 10.0, 120.0):
-        s = settings.model_copy(update={"webhook_timeout_s": timeout})
-        assert webhooks.lease_s(s) >= timeout + webhooks.LEASE_MARGIN_S
+    assert webhooks.lease_s(settings) == 8 + webhooks.LEASE_MARGIN_S
+    drip = DripServer(interval_s=1.5, for_s=12.0).start()
+    try:
+        subscribe(session_factory, drip.url())
+        record(session_factory, make_env(session_factory))
+        [d] = deliveries(session_factory)
+        # claimed 7 s ago (its worker was slow to start sending): 1 s left before the margin
+        seven_ago = utcnow() - timedelta(seconds=7)
+        with db.transaction() as s:
+            s.execute(update(Delivery).where(Delivery.id == d.id).values(next_attempt_at=seven_ago))
+            claim = webhooks.claim(s, d.id, settings, seven_ago)
+        assert claim is not None
+        start = time.monotonic()
+        outcome = webhooks.send(claim, settings)
+        elapsed = time.monotonic() - start
+        assert elapsed < 1.0 + 0.8, f"the attempt took {elapsed:.1f} s"
+        assert not outcome.ok and "deadline" in (outcome.error or ""), outcome.error
+    finally:
+        drip.stop()
 
 
 def test_delivery_connects_to_the_checked_address_not_a_second_lookup(

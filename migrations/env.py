@@ -37,6 +37,24 @@ def run_migrations_online() -> None:
 
 
 def _run(connection: object) -> None:
+    sqlite = connection.dialect.name == "sqlite"  # type: ignore[attr-defined]
+    if sqlite and not connection.in_transaction():  # type: ignore[attr-defined]
+        # A batch ALTER rebuilds the table on SQLite (copy, drop, rename); with foreign keys
+        # on, the drop would cascade to every row pointing at it. SQLite ignores this pragma
+        # inside a transaction, so it goes to the driver before the migration's BEGIN.
+        _driver(connection).execute("PRAGMA foreign_keys=OFF")
+    try:
+        _migrate(connection)
+    finally:
+        if sqlite and not connection.in_transaction():  # type: ignore[attr-defined]
+            _driver(connection).execute("PRAGMA foreign_keys=ON")
+
+
+def _driver(connection: object) -> object:
+    return connection.connection.driver_connection  # type: ignore[attr-defined]
+
+
+def _migrate(connection: object) -> None:
     context.configure(
         connection=connection,  # type: ignore[arg-type]
         target_metadata=target_metadata,

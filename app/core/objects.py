@@ -14,7 +14,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core import jobs, jsondoc
-from app.core.enums import JobKind
+from app.core.enums import JobKind, JobState
 from app.core.errors import (
     Conflict,
     InsufficientStorage,
@@ -268,9 +268,16 @@ def by_names(session: Session, names: list[str]) -> dict[str, LibraryObject]:
 
 
 def delete(session: Session, object_id: str) -> LibraryObject:
-    """Soft delete: history that refers to the object stays readable."""
+    """Soft delete: history that refers to the object stays readable. A preparation job
+    still queued is cancelled with it; a running one is asked to stop."""
     obj = get(session, object_id)
     obj.deleted_at = utcnow()
+    live = [JobState.queued, JobState.running]
+    active = session.scalars(
+        select(Job.id).where(Job.object_id == object_id, Job.state.in_(live))
+    ).all()
+    for job_id in active:
+        jobs.cancel(session, job_id)
     return obj
 
 

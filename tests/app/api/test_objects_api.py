@@ -100,3 +100,16 @@ def test_format_signatures_accept_real_headers() -> None:
     assert format_problem(".obj", b"# exported\nmtllib a.mtl\nv 0 0 0\n", 30) is None
     assert format_problem(".pcd", b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\n", 40) is None
     assert format_problem(".glb", b"glTF\x02\x00\x00\x00", 8) is None
+
+
+def test_deleting_an_object_cancels_its_pending_preparation(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks
+) -> None:
+    status, body = upload(client, keys, "bracket.ply", PLY_CUBE)
+    assert status == 202, body
+    job_id = body["job"]["id"]  # type: ignore[index]
+    r = client.delete(f"/v1/objects/{body['id']}", headers=keys.headers())
+    assert r.status_code == 200, r.text
+    job = client.get(f"/v1/jobs/{job_id}", headers=keys.headers("read")).json()
+    assert job["state"] == "cancelled", job
+    assert job["error"]["detail"] == "cancelled while queued"

@@ -25,10 +25,11 @@ from app.api.routes import (
     snapshots,
     webhooks,
 )
-from app.core import auth
+from app.core import auth, ingest
 from app.core.db import get_session_factory
 from app.core.errors import DomainError
 from app.core.settings import get_settings
+from app.core.storage import LocalStorage
 
 log = logging.getLogger("twindelta")
 
@@ -49,6 +50,8 @@ async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         with get_session_factory().begin() as session:
             if auth.bootstrap_admin_key(session, settings.bootstrap_admin_key):
                 log.info("created the bootstrap admin key")
+    # Staging folders of uploads whose API process died (killed mid-upload) go at once.
+    ingest.sweep_staging(LocalStorage(settings.resolved_storage_dir))
     yield
 
 

@@ -191,6 +191,7 @@ def test_api_killed_mid_upload_then_restarted_retry_succeeds(
     assert staging_left(storage), "the killed upload left its staging folder"
 
     _, client = start_api(procs)
+    assert staging_left(storage) == []  # the restarted API swept the dead upload's folder
     assert n_snapshots(client, env_id) == 1  # nothing half-made became a snapshot
     retry = client.post(
         f"/v1/environments/{env_id}/snapshots", files=capture, headers=headers, timeout=120

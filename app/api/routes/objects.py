@@ -7,14 +7,20 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
-from app.api.schemas.common import ERRORS
+from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.objects import ObjectRead
 from app.core import objects
 
 router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED)
+@router.post(
+    "",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={
+        507: {"model": ErrorOut, "description": "storage full: nothing was kept, retry later"},
+    },
+)
 def create_object(
     file: Annotated[UploadFile, File(description=".ply .obj .stl .glb .off .pcd")],
     name: Annotated[str, Form(description="the detector class name")],

@@ -34,6 +34,7 @@ def _parts(files: list[UploadFile] | None) -> list[ingest.UploadPart]:
         409: {"model": ErrorOut, "description": "Idempotency-Key reused with other files"},
         413: {"model": ErrorOut, "description": "over a file, byte, pixel or line limit"},
         415: {"model": ErrorOut, "description": "unsupported file type"},
+        507: {"model": ErrorOut, "description": "storage full: nothing was kept, retry later"},
     },
 )
 def upload_snapshot(

@@ -6,12 +6,13 @@ from __future__ import annotations
 
 import errno
 import math
+from contextlib import nullcontext
 from pathlib import PurePosixPath
 from typing import Any, BinaryIO
 
 import numpy as np
 from sqlalchemy import select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import jobs, jsondoc
 from app.core.enums import JobKind, JobState
@@ -173,6 +174,15 @@ def _ply_count_problem(head: bytes, size_bytes: int) -> str | None:
     return None
 
 
+def _check_name_free(session: Session, name: str) -> None:
+    if session.scalar(
+        select(LibraryObject.id).where(
+            LibraryObject.name == name, LibraryObject.deleted_at.is_(None)
+        )
+    ):
+        raise Conflict(f"an object named {name!r} already exists", code="ObjectExists")
+
+
 def create(
     session: Session,
     storage: LocalStorage,
@@ -183,10 +193,15 @@ def create(
     units: str,
     symmetry: str | None,
     max_bytes: int,
+    lookup: sessionmaker[Session] | None = None,
 ) -> tuple[LibraryObject, Job]:
     """Store the model file and queue its preparation. 422 for a bad name, unit, suffix,
     symmetry, an empty file or one whose content is not its format; 413 past
-    ``max_bytes``; 409 when the name is taken."""
+    ``max_bytes``; 409 when the name is taken; 507 when the storage is full.
+
+    ``lookup`` opens a short read-only session for the name check made before the file is
+    stored, so that ``session`` is used only for the insert (on SQLite its write lock is
+    then not held while a large file is written). Without it ``session`` does both."""
     name = name.strip()
     if not name:
         raise InvalidInput("name: the detector class name of the object")
@@ -198,12 +213,8 @@ def create(
             f"file: {filename!r} is not a model file ({', '.join(sorted(MODEL_SUFFIXES))})"
         )
     spec = parse_symmetry(symmetry)
-    if session.scalar(
-        select(LibraryObject.id).where(
-            LibraryObject.name == name, LibraryObject.deleted_at.is_(None)
-        )
-    ):
-        raise Conflict(f"an object named {name!r} already exists", code="ObjectExists")
+    with nullcontext(session) if lookup is None else lookup() as reader:
+        _check_name_free(reader, name)
     object_id = new_id()
     key = f"objects/{object_id}/model{suffix}"
     try:
@@ -226,6 +237,11 @@ def create(
     if problem is not None:
         storage.delete_prefix(f"objects/{object_id}")
         raise InvalidInput(f"file: {filename!r} is not a {suffix} model: {problem}")
+    try:
+        _check_name_free(session, name)  # again, in the writing transaction
+    except Conflict:
+        storage.delete_prefix(f"objects/{object_id}")
+        raise
     obj = LibraryObject(
         id=object_id,
         name=name,

@@ -10,6 +10,7 @@ from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.objects import ObjectRead
 from app.core import objects
+from app.core.db import get_read_session_factory
 
 router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
 
@@ -43,6 +44,7 @@ def create_object(
         units=units,
         symmetry=symmetry,
         max_bytes=settings.max_file_bytes,
+        lookup=get_read_session_factory(),  # the write lock only for the insert (SQLite)
     )
     response.headers["Location"] = f"/v1/jobs/{job.id}"
     return ObjectRead.of(obj, job)

@@ -81,3 +81,51 @@ def test_upload_validation_does_not_hold_the_write_lock(
         assert snap.status_code == 200 and snap.json()["n_images"] == 3
     assert len(waits) == 1
     assert isinstance(waits[0], float) and waits[0] < 0.25, waits
+
+
+def test_object_upload_does_not_hold_the_write_lock_while_storing(
+    sqlite_file: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from app.core.storage import LocalStorage
+
+    with db.get_session_factory().begin() as s:
+        _, token = auth.create_key(s, "admin", ["admin"])
+    waits: list[float | str] = []
+    real_write = LocalStorage.write_stream
+
+    def write_while_another_process_writes(self: LocalStorage, *args: Any, **kw: Any) -> Any:
+        other = sqlite3.connect(sqlite_file, timeout=0.5, isolation_level=None)
+        started = time.monotonic()
+        try:
+            other.execute("BEGIN IMMEDIATE")
+            other.execute("ROLLBACK")
+            waits.append(time.monotonic() - started)
+        except sqlite3.OperationalError as exc:
+            waits.append(str(exc))
+        finally:
+            other.close()
+        return real_write(self, *args, **kw)
+
+    monkeypatch.setattr(LocalStorage, "write_stream", write_while_another_process_writes)
+    ply = b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+    ply += b"property float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    with TestClient(create_app()) as client:
+        r = client.post(
+            "/v1/objects",
+            files={"file": ("m.ply", ply, "application/octet-stream")},
+            data={"name": "drill"},
+            headers={"Authorization": f"Bearer {token}"},
+        )
+        assert r.status_code == 202, r.text
+        again = client.post(
+            "/v1/objects",
+            files={"file": ("m.ply", ply, "application/octet-stream")},
+            data={"name": "drill"},
+            headers={"Authorization": f"Bearer {token}"},
+        )
+        assert (again.status_code, again.json()["error"]) == (409, "ObjectExists"), again.text
+    assert isinstance(waits[0], float) and waits[0] < 0.25, waits
+    stored = sorted(
+        p.parent.name for p in (sqlite_file.parent / "files" / "objects").rglob("*.ply")
+    )
+    assert len(stored) == 1  # the refused duplicate left no file

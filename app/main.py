@@ -10,7 +10,9 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from sqlalchemy.exc import DataError
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 from app.api import metrics as metrics_routes
 from app.api.json_guard import JsonGuard
@@ -59,6 +61,17 @@ def _error(status: int, code: str, detail: str) -> JSONResponse:
     return JSONResponse(status_code=status, content={"error": code, "detail": detail})
 
 
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path (asked of the router itself,
+    so included routers and path parameters count as they do for dispatch)."""
+    routes = request.app.router.routes
+    return [
+        method
+        for method in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+        if any(r.matches({**request.scope, "method": method})[0] == Match.FULL for r in routes)
+    ]
+
+
 def create_app() -> FastAPI:
     app = FastAPI(
         title="twindelta",
@@ -73,6 +86,15 @@ def create_app() -> FastAPI:
         response.headers.update(exc.headers or {})  # e.g. Retry-After on a 429
         return response
 
+    @app.exception_handler(DataError)
+    async def data_error(_request: Request, exc: DataError) -> JSONResponse:
+        # What the database refuses to store, found past the API's own checks (a NUL
+        # character in a form field or a path, a number out of a column's range): the
+        # request's fault, so a 422 with the database's reason, not a 500.
+        reason = str(exc.orig).splitlines()[0] if exc.orig is not None else "invalid value"
+        log.info("database refused a value: %s", reason)
+        return _error(422, "InvalidInput", f"a value the database cannot store: {reason}")
+
     @app.exception_handler(RequestValidationError)
     async def validation_error(_request: Request, exc: RequestValidationError) -> JSONResponse:
         parts = []
@@ -82,9 +104,20 @@ def create_app() -> FastAPI:
         return _error(422, "InvalidInput", "; ".join(parts) or "invalid request")
 
     @app.exception_handler(StarletteHTTPException)
-    async def http_error(_request: Request, exc: StarletteHTTPException) -> JSONResponse:
-        codes = {404: "NotFound", 405: "MethodNotAllowed", 401: "Unauthorized"}
-        return _error(exc.status_code, codes.get(exc.status_code, "HTTPError"), str(exc.detail))
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        codes = {
+            400: "BadRequest",
+            401: "Unauthorized",
+            404: "NotFound",
+            405: "MethodNotAllowed",
+        }
+        response = _error(exc.status_code, codes.get(exc.status_code, "HTTPError"), str(exc.detail))
+        response.headers.update(exc.headers or {})
+        if exc.status_code == 405:
+            # Allow lists every method of the resource (Starlette names only the first route
+            # whose path matched: POST for /v1/environments, which also has GET).
+            response.headers["Allow"] = ", ".join(_allowed_methods(request))
+        return response
 
     app.add_middleware(JsonGuard)
     app.add_middleware(BodyGuard)  # key and size checked before a body is read

@@ -4,7 +4,8 @@ field.
 Python's ``json`` accepts more than JSON and fails in ways no caller handles: ``NaN`` and
 ``Infinity`` (not JSON; PostgreSQL refuses to store them, SQLite silently stores null),
 ``1e400`` (parses to ``inf``), integers past 4,300 digits (``ValueError`` from the int-string
-limit), and nesting deep enough to exhaust the stack (``RecursionError``). :func:`loads`
+limit), nesting deep enough to exhaust the stack (``RecursionError``), and strings no
+database stores (NUL characters, unpaired surrogates such as ``"\\ud800"``). :func:`loads`
 turns each into :class:`InvalidInput` naming where it is (``options.compare.max_clusters``),
 and bounds what passes: integers fit in 64 bits, floats are finite, nesting is at most
 :data:`MAX_DEPTH` levels.
@@ -76,6 +77,18 @@ def path_join(where: str, key: str | int) -> str:
     return f"{where}[{short(repr(key))}]"
 
 
+def _text_problem(text: str) -> str | None:
+    """Why ``text`` cannot be stored (PostgreSQL refuses NUL in text and JSON; a lone
+    surrogate such as "\\ud800" is not Unicode text and cannot be encoded as UTF-8)."""
+    if "\x00" in text:
+        return "text with a NUL character (\\u0000)"
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return "text with an unpaired surrogate (not Unicode)"
+    return None
+
+
 def _name(where: str, path: str) -> str:
     if not path:
         return where
@@ -91,11 +104,20 @@ def _find_rejected(doc: Any, where: str, root: str, code: str | None) -> None:
         value, path, depth = stack.pop()
         if isinstance(value, _Rejected):
             raise InvalidInput(f"{_name(where, path)}: {value.why}", code=code)
+        if isinstance(value, str) and (problem := _text_problem(value)):
+            raise InvalidInput(f"{_name(where, path)}: {problem}", code=code)
         if isinstance(value, dict | list):
             if depth >= MAX_DEPTH:
                 raise InvalidInput(
                     f"{_name(where, path)}: nested more than {MAX_DEPTH} levels deep", code=code
                 )
+            if isinstance(value, dict):
+                for key in value:
+                    if problem := _text_problem(key):
+                        raise InvalidInput(
+                            f"{_name(where, path_join(path, key))}: the key is {problem}",
+                            code=code,
+                        )
             items = value.items() if isinstance(value, dict) else enumerate(value)
             # Reversed, so the first problem in document order is the one reported.
             for key, item in reversed(list(items)):

@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Response, status
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, StorageDep
-from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.comparisons import ComparisonCreate, ComparisonRead
 from app.api.schemas.environments import (
     EnvironmentCreate,
@@ -22,7 +22,11 @@ from app.core import auth, comparisons, environments, retention, snapshots, twin
 router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    responses={**TOO_LARGE, **conflict("EnvironmentExists: the name is taken")},
+)
 def create_environment(
     body: EnvironmentCreate, session: SessionDep, _key: AdminKey
 ) -> EnvironmentRead:
@@ -77,7 +81,14 @@ def list_snapshots(environment_id: str, session: SessionDep, key: ReadKey) -> li
     ]
 
 
-@router.post("/{environment_id}/comparisons", status_code=status.HTTP_202_ACCEPTED)
+@router.post(
+    "/{environment_id}/comparisons",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses={
+        **TOO_LARGE,
+        **conflict("SnapshotNotReconstructed: before or after is not reconstructed"),
+    },
+)
 def create_comparison(
     environment_id: str,
     body: ComparisonCreate,

@@ -7,6 +7,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import text
 
 from app.api.deps import SettingsDep, StorageDep
+from app.api.schemas.common import Readiness
 from app.core.db import get_read_session_factory
 
 router = APIRouter(tags=["health"])
@@ -18,7 +19,14 @@ def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", response_model=None)
+@router.get(
+    "/readyz",
+    response_model=None,
+    responses={
+        200: {"model": Readiness, "description": "ready"},
+        503: {"model": Readiness, "description": "the database or storage is not ready"},
+    },
+)
 def readyz(settings: SettingsDep, storage: StorageDep) -> dict[str, object] | JSONResponse:
     """The database answers and storage is writable; 503 otherwise."""
     checks: dict[str, str] = {}

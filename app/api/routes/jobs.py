@@ -8,7 +8,7 @@ from fastapi import APIRouter
 from starlette.concurrency import run_in_threadpool
 
 from app.api.deps import CaptureKey, ReadKey, SessionDep
-from app.api.schemas.common import ERRORS
+from app.api.schemas.common import ERRORS, conflict
 from app.api.schemas.jobs import JobRead
 from app.core import auth, jobs
 from app.core.db import get_read_session_factory
@@ -64,7 +64,7 @@ def _read_job(job_id: str, key: auth.Principal) -> JobRead:
         return JobRead.of(row)
 
 
-@router.post("/{job_id}/cancel")
+@router.post("/{job_id}/cancel", responses=conflict("JobFinished: the job already ended"))
 def cancel_job(job_id: str, session: SessionDep, key: CaptureKey) -> JobRead:
     """Cancel a queued job at once, or ask a running one to stop; 409 when already finished.
     Needs a key that reaches the job's environment, or admin (jobs of no environment)."""

@@ -6,7 +6,7 @@ from fastapi import APIRouter, status
 from sqlalchemy import select
 
 from app.api.deps import AdminKey, SessionDep
-from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut
 from app.api.schemas.keys import KeyCreate, KeyCreated, KeyRead
 from app.core import auth
 from app.core.errors import NotFound
@@ -15,7 +15,7 @@ from app.core.models import ApiKey
 router = APIRouter(prefix="/keys", tags=["keys"], responses=ERRORS)
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post("", status_code=status.HTTP_201_CREATED, responses=TOO_LARGE)
 def create_key(body: KeyCreate, session: SessionDep, _key: AdminKey) -> KeyCreated:
     """Create a key with scopes, optionally limited to environments; the response is the
     only time the token is shown."""

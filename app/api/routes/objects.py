@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, File, Form, Response, UploadFile, status
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
-from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.common import ERRORS, MALFORMED, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.objects import ObjectRead
 from app.core import objects
 from app.core.db import get_read_session_factory
@@ -19,6 +19,9 @@ router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
     "",
     status_code=status.HTTP_202_ACCEPTED,
     responses={
+        **MALFORMED,
+        **TOO_LARGE,
+        **conflict("ObjectExists: the name is taken"),
         507: {"model": ErrorOut, "description": "storage full: nothing was kept, retry later"},
     },
 )

@@ -8,7 +8,7 @@ from fastapi import APIRouter, File, Header, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 
 from app.api.deps import AdminKey, CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
-from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.common import ERRORS, MALFORMED, ErrorOut, conflict
 from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
 from app.core import auth, ingest, retention, snapshots
@@ -31,6 +31,7 @@ def _parts(files: list[UploadFile] | None) -> list[ingest.UploadPart]:
     status_code=status.HTTP_202_ACCEPTED,
     form_limits={"max_files": FORM_MAX_FILES},
     responses={
+        **MALFORMED,
         409: {"model": ErrorOut, "description": "Idempotency-Key reused with other files"},
         413: {"model": ErrorOut, "description": "over a file, byte, pixel or line limit"},
         415: {"model": ErrorOut, "description": "unsupported file type"},
@@ -116,7 +117,10 @@ def delete_snapshot(
 @router.get(
     "/snapshots/{snapshot_id}/pointcloud",
     response_class=StreamingResponse,
-    responses={200: {"content": {"application/octet-stream": {}}}},
+    responses={
+        200: {"content": {"application/octet-stream": {}}},
+        **conflict("PointCloudNotReady: the snapshot is not reconstructed (yet)"),
+    },
 )
 def get_pointcloud(
     snapshot_id: str, session: SessionDep, storage: StorageDep, key: ReadKey

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Query, status
 
 from app.api.deps import AdminKey, SessionDep, SettingsDep
-from app.api.schemas.common import ERRORS, ErrorOut
+from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.webhooks import (
     DeliveryRead,
     WebhookCreate,
@@ -20,7 +20,7 @@ from app.core.enums import DeliveryState
 router = APIRouter(prefix="/webhooks", tags=["webhooks"], responses=ERRORS)
 
 
-@router.post("", status_code=status.HTTP_201_CREATED)
+@router.post("", status_code=status.HTTP_201_CREATED, responses=TOO_LARGE)
 def create_webhook(
     body: WebhookCreate, session: SessionDep, settings: SettingsDep, _key: AdminKey
 ) -> WebhookCreated:
@@ -83,7 +83,11 @@ def list_deliveries(
 
 
 @router.post(
-    "/{webhook_id}/deliveries/{delivery_id}/redeliver", status_code=status.HTTP_202_ACCEPTED
+    "/{webhook_id}/deliveries/{delivery_id}/redeliver",
+    status_code=status.HTTP_202_ACCEPTED,
+    responses=conflict(
+        "WebhookInactive: the webhook is deactivated; InFlight: an attempt is being sent"
+    ),
 )
 def redeliver(
     webhook_id: str, delivery_id: str, session: SessionDep, _key: AdminKey

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import AfterValidator, BaseModel, ConfigDict
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field
 
 
 def _check_pose(value: list[list[float]]) -> list[list[float]]:
@@ -34,10 +34,27 @@ ERRORS: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorOut, "description": "missing or unknown API key"},
     403: {"model": ErrorOut, "description": "the key lacks the scope"},
     404: {"model": ErrorOut, "description": "not found"},
-    422: {"model": ErrorOut, "description": "invalid input"},
+    422: {"model": ErrorOut, "description": "invalid input, naming the field"},
     429: {
         "model": ErrorOut,
         "description": "too many unknown API keys from this address (Retry-After: seconds)",
         "headers": {"Retry-After": {"schema": {"type": "integer"}}},
     },
 }
+"""What every ``/v1`` operation may answer besides its own statuses."""
+MALFORMED: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorOut, "description": "a multipart body that cannot be parsed"},
+}
+TOO_LARGE: dict[int | str, dict[str, Any]] = {
+    413: {"model": ErrorOut, "description": "the body is over its size limit"},
+}
+
+
+def conflict(description: str) -> dict[int | str, dict[str, Any]]:
+    """A documented 409 (``error`` names which conflict)."""
+    return {409: {"model": ErrorOut, "description": description}}
+
+
+class Readiness(BaseModel):
+    status: str = Field(description="ok or unavailable")
+    checks: dict[str, str] = Field(description="database and storage: ok or the error")

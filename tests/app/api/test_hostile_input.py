@@ -217,3 +217,46 @@ def test_cameras_json_hostile_document_is_a_422(
     assert "cameras.json" in r.json()["detail"] and detail in r.json()["detail"], r.text
     assert len(r.text) < 2000
     assert sent_tasks.names() == []
+
+
+@pytest.mark.parametrize(
+    ("raw", "field"),
+    [
+        ('{"name": "line\\u0000one", "classes": ["a"]}', "name: text with a NUL character"),
+        ('{"name": "line-1", "classes": ["\\ud800"]}', "classes[0]: text with an unpaired"),
+        (env_body(options='{"compare": {"a\\u0000": 1}}'), "the key is text with a NUL"),
+    ],
+    ids=["nul-in-name", "lone-surrogate", "nul-in-key"],
+)
+def test_text_no_database_stores_is_a_422(
+    client: TestClient, keys: Keys, raw: str, field: str
+) -> None:
+    """Found by schemathesis: a NUL in a name was a 500 on PostgreSQL (DataError)."""
+    r = post_env(client, keys, raw)
+    assert r.status_code == 422 and field in r.json()["detail"], r.text
+    assert client.get("/v1/environments", headers=keys.headers("read")).json() == []
+
+
+def test_nul_in_a_path_or_query_is_a_422(client: TestClient, keys: Keys) -> None:
+    for url in ("/v1/environments/a%00b", "/v1/jobs/%00", "/v1/webhooks/x/deliveries?state=%00"):
+        r = client.get(url, headers=keys.headers())
+        assert r.status_code == 422 and "NUL" in r.json()["detail"], (url, r.text)
+
+
+def test_a_value_the_database_refuses_is_a_422_not_a_500(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks, database_url: str
+) -> None:
+    """The safety net past the API's own checks: PostgreSQL refuses NUL in text (here a form
+    field no JSON guard sees); SQLite stores it as given."""
+    r = client.post(
+        "/v1/objects",
+        files={"file": ("bracket.ply", io.BytesIO(PLY_CUBE))},
+        data={"name": "brack\x00et"},
+        headers=keys.headers(),
+    )
+    if database_url.startswith("postgresql"):
+        assert r.status_code == 422, r.text
+        assert r.json()["error"] == "InvalidInput" and "NUL" in r.json()["detail"]
+        assert sent_tasks.names() == []
+    else:
+        assert r.status_code == 202 and r.json()["name"] == "brack\x00et", r.text

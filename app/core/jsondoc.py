@@ -77,7 +77,7 @@ def path_join(where: str, key: str | int) -> str:
     return f"{where}[{short(repr(key))}]"
 
 
-def _text_problem(text: str) -> str | None:
+def text_problem(text: str) -> str | None:
     """Why ``text`` cannot be stored (PostgreSQL refuses NUL in text and JSON; a lone
     surrogate such as "\\ud800" is not Unicode text and cannot be encoded as UTF-8)."""
     if "\x00" in text:
@@ -104,7 +104,7 @@ def _find_rejected(doc: Any, where: str, root: str, code: str | None) -> None:
         value, path, depth = stack.pop()
         if isinstance(value, _Rejected):
             raise InvalidInput(f"{_name(where, path)}: {value.why}", code=code)
-        if isinstance(value, str) and (problem := _text_problem(value)):
+        if isinstance(value, str) and (problem := text_problem(value)):
             raise InvalidInput(f"{_name(where, path)}: {problem}", code=code)
         if isinstance(value, dict | list):
             if depth >= MAX_DEPTH:
@@ -113,7 +113,7 @@ def _find_rejected(doc: Any, where: str, root: str, code: str | None) -> None:
                 )
             if isinstance(value, dict):
                 for key in value:
-                    if problem := _text_problem(key):
+                    if problem := text_problem(key):
                         raise InvalidInput(
                             f"{_name(where, path_join(path, key))}: the key is {problem}",
                             code=code,

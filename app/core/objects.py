@@ -205,6 +205,8 @@ def create(
     name = name.strip()
     if not name:
         raise InvalidInput("name: the detector class name of the object")
+    if (problem := jsondoc.text_problem(name)) is not None:
+        raise InvalidInput(f"name: {problem}")
     if units not in UNITS:
         raise InvalidInput(f"units: {units!r} is not one of m, cm, mm")
     suffix = PurePosixPath(filename or "").suffix.lower()

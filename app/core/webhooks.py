@@ -161,10 +161,9 @@ def verify_signature(
     signatures = lower.get("webhook-signature")
     if not msg_id or not stamp or not signatures:
         raise WebhookVerificationError("missing webhook-id, webhook-timestamp or signature")
-    try:
-        timestamp = int(stamp)
-    except ValueError as exc:
-        raise WebhookVerificationError("webhook-timestamp is not an integer") from exc
+    if not (stamp.isascii() and stamp.isdigit() and len(stamp) <= 12):
+        raise WebhookVerificationError("webhook-timestamp is not unix seconds (1-12 digits)")
+    timestamp = int(stamp)
     current = time.time() if now is None else now
     if abs(current - timestamp) > tolerance_s:
         raise WebhookVerificationError("webhook-timestamp is outside the tolerance")

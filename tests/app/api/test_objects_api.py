@@ -113,3 +113,17 @@ def test_deleting_an_object_cancels_its_pending_preparation(
     job = client.get(f"/v1/jobs/{job_id}", headers=keys.headers("read")).json()
     assert job["state"] == "cancelled", job
     assert job["error"]["detail"] == "cancelled while queued"
+
+
+@pytest.mark.parametrize("name", ["drill\x00", "\x00"])
+def test_a_name_no_database_can_store_is_a_422(
+    client: TestClient, keys: Keys, name: str
+) -> None:
+    r = client.post(
+        "/v1/objects",
+        files={"file": ("bracket.ply", io.BytesIO(PLY_CUBE))},
+        data={"name": name},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 422, r.text
+    assert r.json()["detail"].startswith("name: text with")

@@ -347,6 +347,16 @@ def drive(factory: sessionmaker[Session], sent: SentTasks, timeout_s: float = 10
 # --- signatures ----------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("stamp", ["9" * 400, "-" + "9" * 400, "1e9", " ", "١٢٣"])
+def test_a_hostile_timestamp_is_a_verification_error(stamp: str) -> None:
+    secret = webhooks.new_secret()
+    body = b"{}"
+    headers = {**webhooks.signed_headers(secret, "e1", body, int(time.time()))}
+    headers["webhook-timestamp"] = stamp
+    with pytest.raises(webhooks.WebhookVerificationError, match="webhook-timestamp"):
+        webhooks.verify_signature(secret, headers, body)
+
+
 def test_secret_and_signature_verify_and_fail() -> None:
     secret = webhooks.new_secret()
     assert secret.startswith("whsec_")

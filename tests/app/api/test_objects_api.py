@@ -116,9 +116,7 @@ def test_deleting_an_object_cancels_its_pending_preparation(
 
 
 @pytest.mark.parametrize("name", ["drill\x00", "\x00"])
-def test_a_name_no_database_can_store_is_a_422(
-    client: TestClient, keys: Keys, name: str
-) -> None:
+def test_a_name_no_database_can_store_is_a_422(client: TestClient, keys: Keys, name: str) -> None:
     r = client.post(
         "/v1/objects",
         files={"file": ("bracket.ply", io.BytesIO(PLY_CUBE))},

@@ -20,7 +20,7 @@ from typing import Any
 
 import httpx
 
-from bench.client import REPO_ROOT, check, free_port
+from app.client import REPO_ROOT, check, free_port
 
 KEY = "td_bench_admin_key_0123456789abcdef"
 PG_ADMIN = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"

@@ -9,7 +9,7 @@ capture refined against the before cloud, as the snapshot job does), compare at 
 thesis's thresholds (the "thesis" preset at mean + k·σ, k ∈ {0, 0.5, 1, 1.5}) and with
 our default options ("ours"), then pose every identified change with the comparison job's
 own pose step (:func:`workers.pipeline.posing.pose_changes`) and score against the ground
-truth (:func:`bench.evaluate.match_changes`). Each found change also gets the oracle
+truth (:func:`workers.demo.evaluate.match_changes`). Each found change also gets the oracle
 metric (:func:`oracle_metrics`: what a perfect cluster would score against the same
 detections). Also: every scenario again with a clean detector (no misses or false boxes,
 jitter kept), one robustness run with 10 % missed and 5 % false boxes, reconstruction
@@ -39,12 +39,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench.evaluate import match_changes
+from workers.pipeline.posing import cameras_from_json, pose_changes
+
 from bench.reconstruct_bench import (
     camera_metrics,
     cloud_metrics,
     visible_surface_samples,
 )
+from workers.demo.evaluate import match_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.identify import identify, yolo_to_boxes
 from workers.pipeline.compare.options import options_from_json
@@ -52,7 +54,6 @@ from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model import PreparedModel, prepare_model
-from workers.pipeline.posing import cameras_from_json, pose_changes
 from workers.pipeline.reconstruct import options_from_preset, parse_cameras, reconstruct
 from workers.pipeline.reconstruct.fusion import read_ply
 from workers.pipeline.synth import (

@@ -32,7 +32,7 @@ import httpx
 import numpy as np
 from PIL import Image
 
-from bench.client import free_port
+from app.client import free_port
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 TARGET_PEAK_RSS_MB = 300.0

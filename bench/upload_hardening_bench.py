@@ -34,7 +34,7 @@ import httpx
 import numpy as np
 from PIL import Image
 
-from bench.client import REPO_ROOT, free_port
+from app.client import REPO_ROOT, free_port
 
 TREE = REPO_ROOT
 ADMIN = "td_measure_admin_key_0123456789abcdef"

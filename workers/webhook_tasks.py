@@ -1,4 +1,4 @@
-"""Thin webhook tasks. The schedule lives in the database (app/core/webhooks.py):
+"""Thin webhook tasks. The schedule lives in the database (app/core/webhooks/):
 ``webhooks.deliver`` (``webhooks`` queue) makes one attempt, bounded by its deadline, and
 never sleeps; beat's ``webhooks.dispatch`` (``maintenance`` queue, another worker process, so
 deliveries that hang cannot hold it up) sends every delivery whose next attempt has come

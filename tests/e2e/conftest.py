@@ -18,7 +18,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from bench.client import free_port
+from app.client import free_port
 from tests.app.conftest import create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
 

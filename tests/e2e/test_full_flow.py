@@ -11,11 +11,11 @@ from pathlib import Path
 
 import pytest
 
-from bench.client import check, embedded_service, poll_job, upload_capture
-from bench.evaluate import match_changes
+from app.client import check, embedded_service, poll_job, upload_capture
+from workers.demo.evaluate import match_changes
 from workers.pipeline.synth import generate, preset
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 ADMIN_KEY = "td_full_flow_admin_key_0123456789"
 
 

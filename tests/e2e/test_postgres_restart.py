@@ -30,17 +30,17 @@ import pytest
 from sqlalchemy import create_engine, select, text
 from sqlalchemy.orm import sessionmaker
 
+from app.client import free_port
 from app.core import db, jobs, objects, queue
 from app.core.db import transaction
 from app.core.enums import JobState, ObjectState
 from app.core.models import Event, Job
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
-from bench.client import free_port
 from tests.app.conftest import migrate
 from tests.e2e.conftest import Processes, RedisServer, api_client, wait_until
 
-pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 
 def pg_bin() -> Path:

@@ -14,11 +14,11 @@ from pathlib import Path
 import httpx
 import pytest
 
-from bench.client import capture_parts
+from app.client import capture_parts
 from tests.e2e.conftest import Processes, api_client, free_port, poll_job
 from workers.pipeline.synth import PRESETS, generate
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 
 def capture_files(capture_dir: Path) -> list[tuple[str, tuple[str, bytes]]]:

@@ -36,12 +36,12 @@ from pydantic import SecretStr, ValidationError
 from sqlalchemy import select, text, update
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.client import free_port
 from app.core import db, events, secretbox, webhooks
 from app.core.enums import DeliveryState, EventType
 from app.core.errors import Conflict, InvalidInput
 from app.core.models import Delivery, DeliveryAttempt, Environment, WebhookSubscription, utcnow
 from app.core.settings import Settings, get_settings
-from bench.client import free_port
 from tests.app.conftest import SentTasks
 from tests.conftest import REPO_ROOT
 

@@ -5,12 +5,13 @@ detector's boxes (the thesis's overlap figures), the distance histograms with th
 from __future__ import annotations
 
 import html
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from PIL import Image, ImageDraw
 
-from bench.evaluate import Match
+from workers.demo.evaluate import Match
 
 CLUSTER_COLOUR = (255, 40, 40)
 DETECTION_COLOUR = (40, 200, 255)
@@ -76,29 +77,9 @@ def _histogram_svg(side: str, stats: dict[str, Any], thresholds: dict[str, float
     )
 
 
-def write_report(
-    out_dir: Path,
-    scene_dir: Path,
-    comparison: dict[str, Any],
-    matches: list[Match],
-    extra: list[dict[str, Any]],
-    classes: list[str],
-    timings: dict[str, float],
-) -> Path:
-    """Write ``out_dir/report.html`` (with its PNGs) and return its path."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    clusters = {c["id"]: c for c in comparison["clusters"]}
-    parts = [
-        "<html><head><meta charset='utf-8'><title>twindelta demo</title><style>"
-        "body{font-family:sans-serif;margin:2em} img{margin:4px;border:1px solid #ccc}"
-        "table{border-collapse:collapse} td,th{border:1px solid #ccc;padding:4px 8px}"
-        "</style></head><body><h1>twindelta demo report</h1>"
-    ]
-    parts.append(
-        "<p>Red: the changed cluster re-projected into the capture's images. Blue: the "
-        "detector's boxes (thick: the identified class).</p>"
-    )
-    parts.append("<h2>Distances and thresholds</h2>")
+def _distance_section(comparison: dict[str, Any]) -> list[str]:
+    """Per side, the C2C histogram with the candidate thresholds and the one used (metres)."""
+    parts = ["<h2>Distances and thresholds</h2>"]
     for side in ("added", "removed"):
         stats = comparison["distances"].get(side)
         if stats:
@@ -111,41 +92,85 @@ def write_report(
                 "used": stats["threshold"],
             }
             parts.append(_histogram_svg(side, stats, thresholds))
+    return parts
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """Where one change's figures come from and go: the generated scene, the comparison's
+    clusters by id, the class names, and the report's folder."""
+
+    scene_dir: Path
+    clusters: dict[str | None, dict[str, Any]]
+    classes: list[str]
+    out_dir: Path
+
+
+def _change_section(n: int, match: Match, scene: _Scene) -> list[str]:
+    """One true change: missed, or its identification, pose errors and up to four images
+    with the cluster's box (written as ``change{n}_{i}.png``)."""
+    found, truth = match.found, match.truth
+    parts = [f"<h3>{html.escape(truth['type'])} {html.escape(truth['object'])}</h3>"]
+    if found is None:
+        parts.append("<p><b>missed</b>: no change of this type and object was found.</p>")
+        return parts
+    err = (
+        f"translation error {match.translation_error_m * 1000:.1f} mm, rotation error "
+        f"{match.rotation_error_deg:.2f}°"
+        if match.translation_error_m is not None
+        else "no pose"
+    )
+    ident = found.get("identification") or {}
+    parts.append(
+        f"<p>identification metric {ident.get('metric', 0):.2f} "
+        f"(IoU {ident.get('iou', 0):.2f}, "
+        f"{ident.get('overlaps', 0)}/{ident.get('occurrences', 0)} images); {err}; "
+        f"pose quality {html.escape(str(found.get('pose_quality')))[:300]}</p>"
+    )
+    cluster = scene.clusters.get((found.get("cluster") or {}).get("id"))
+    side = (found.get("cluster") or {}).get("side", "added")
+    capture = scene.scene_dir / ("after" if side == "added" else "before")
+    boxes = (cluster or {}).get("boxes", {})
+    for i, (image_name, box) in enumerate(sorted(boxes.items())[:4]):
+        png = scene.out_dir / f"change{n}_{i}.png"
+        _boxes_image(
+            capture / "images" / image_name,
+            capture / "labels" / (Path(image_name).stem + ".txt"),
+            scene.classes,
+            box,
+            found.get("object"),
+            png,
+        )
+        parts.append(f"<img src='{png.name}'>")
+    return parts
+
+
+def write_report(
+    out_dir: Path,
+    scene_dir: Path,
+    comparison: dict[str, Any],
+    matches: list[Match],
+    extra: list[dict[str, Any]],
+    classes: list[str],
+    timings: dict[str, float],
+) -> Path:
+    """Write ``out_dir/report.html`` (with its PNGs) and return its path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scene = _Scene(scene_dir, {c["id"]: c for c in comparison["clusters"]}, classes, out_dir)
+    parts = [
+        "<html><head><meta charset='utf-8'><title>twindelta demo</title><style>"
+        "body{font-family:sans-serif;margin:2em} img{margin:4px;border:1px solid #ccc}"
+        "table{border-collapse:collapse} td,th{border:1px solid #ccc;padding:4px 8px}"
+        "</style></head><body><h1>twindelta demo report</h1>"
+    ]
+    parts.append(
+        "<p>Red: the changed cluster re-projected into the capture's images. Blue: the "
+        "detector's boxes (thick: the identified class).</p>"
+    )
+    parts += _distance_section(comparison)
     parts.append("<h2>Changes</h2>")
-    for n, match in enumerate([*matches, *[None] * 0]):
-        found, truth = match.found, match.truth
-        parts.append(f"<h3>{html.escape(truth['type'])} {html.escape(truth['object'])}</h3>")
-        if found is None:
-            parts.append("<p><b>missed</b>: no change of this type and object was found.</p>")
-            continue
-        err = (
-            f"translation error {match.translation_error_m * 1000:.1f} mm, rotation error "
-            f"{match.rotation_error_deg:.2f}°"
-            if match.translation_error_m is not None
-            else "no pose"
-        )
-        ident = found.get("identification") or {}
-        parts.append(
-            f"<p>identification metric {ident.get('metric', 0):.2f} "
-            f"(IoU {ident.get('iou', 0):.2f}, "
-            f"{ident.get('overlaps', 0)}/{ident.get('occurrences', 0)} images); {err}; "
-            f"pose quality {html.escape(str(found.get('pose_quality')))[:300]}</p>"
-        )
-        cluster = clusters.get((found.get("cluster") or {}).get("id"))
-        side = (found.get("cluster") or {}).get("side", "added")
-        capture = scene_dir / ("after" if side == "added" else "before")
-        boxes = (cluster or {}).get("boxes", {})
-        for i, (image_name, box) in enumerate(sorted(boxes.items())[:4]):
-            png = out_dir / f"change{n}_{i}.png"
-            _boxes_image(
-                capture / "images" / image_name,
-                capture / "labels" / (Path(image_name).stem + ".txt"),
-                classes,
-                box,
-                found.get("object"),
-                png,
-            )
-            parts.append(f"<img src='{png.name}'>")
+    for n, match in enumerate(matches):
+        parts += _change_section(n, match, scene)
     if extra:
         parts.append("<h2>Changes with no ground truth (false changes)</h2><ul>")
         parts += [

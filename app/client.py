@@ -1,5 +1,7 @@
-"""A capture station's view of twindelta: start the embedded service, upload captures over
-HTTP, poll jobs with progress. Shared by the demo and the benchmarks."""
+"""A capture station's view of twindelta over HTTP (httpx): start the embedded service, upload
+captures, poll jobs with progress. Shared by the demo (``workers.demo``), the benchmarks and
+the e2e tests. Imports nothing from the service (import-linter checks it): the service is a
+child process, reached only over HTTP."""
 
 from __future__ import annotations
 

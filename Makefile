@@ -14,16 +14,17 @@ HOST ?= 127.0.0.1
 PORT ?= 8000
 export HOST PORT
 
-.PHONY: help install system-packages test-tools demo serve test bench lint format openapi option-schema clean
+.PHONY: help install system-packages test-tools demo serve test bench lint format openapi option-schema option-docs clean
 
 help:
 	@echo "make demo    - run the whole service on a generated before/after scene and print the changes"
 	@echo "make test    - the test suite (needs PostgreSQL and Redis on 127.0.0.1, see README)"
 	@echo "make serve   - the embedded service (API + workers, no external servers) on HOST:PORT"
 	@echo "make bench   - benchmarks; JSON results under bench/results/"
-	@echo "make lint    - ruff, mypy, import-linter, OpenAPI and option-schema freshness"
+	@echo "make lint    - ruff, mypy, import-linter, function size, OpenAPI, option-schema and option-docs freshness"
 	@echo "make openapi - regenerate openapi/openapi.json"
 	@echo "make option-schema - regenerate app/core/option_schema.json from the workers' options"
+	@echo "make option-docs - regenerate docs/options.md from the workers' option classes"
 
 $(UV):
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || { echo "twindelta needs Python >= 3.11 as $(PYTHON)"; exit 1; }
@@ -51,7 +52,7 @@ system-packages:
 	fi
 
 demo: install
-	$(PY) -m bench.demo
+	$(PY) -m workers.demo
 
 serve: install
 	$(VENV)/bin/twindelta serve --host $(HOST) --port $(PORT)
@@ -79,6 +80,8 @@ lint: install
 	$(VENV)/bin/lint-imports
 	$(VENV)/bin/twindelta openapi | diff -q - openapi/openapi.json >/dev/null || { echo "openapi/openapi.json is stale: run make openapi"; exit 1; }
 	$(VENV)/bin/python -m workers.pipeline option-schema | diff -q - app/core/option_schema.json >/dev/null || { echo "app/core/option_schema.json is stale: run make option-schema"; exit 1; }
+	$(VENV)/bin/python -m workers.pipeline option-docs | diff -q - docs/options.md >/dev/null || { echo "docs/options.md is stale: run make option-docs"; exit 1; }
+	$(VENV)/bin/python .ci/function_size.py app workers
 
 format: install
 	$(VENV)/bin/ruff check --fix .
@@ -89,6 +92,9 @@ openapi: install
 
 option-schema: install
 	$(VENV)/bin/python -m workers.pipeline option-schema --out app/core/option_schema.json
+
+option-docs: install
+	$(VENV)/bin/python -m workers.pipeline option-docs --out docs/options.md
 
 clean:
 	rm -rf .tools $(VENV) twindelta-data demo-output

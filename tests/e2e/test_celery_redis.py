@@ -22,7 +22,7 @@ from tests.e2e.conftest import (
     poll_job,
 )
 
-pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 
 def mesh_bytes(tmp_path: Path, mesh: o3d.geometry.TriangleMesh, name: str) -> bytes:

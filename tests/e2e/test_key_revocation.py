@@ -12,7 +12,7 @@ import pytest
 
 from tests.e2e.conftest import ADMIN_KEY, Processes, api_client, free_port
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 
 def start_api(procs: Processes, name: str) -> httpx.Client:

@@ -20,7 +20,7 @@ from PIL import Image
 
 from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, wait_until
 
-pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 PLUGIN = "tests.e2e.fake_pipeline_plugin"
 CLASSES = ["drill", "bowl", "mug"]

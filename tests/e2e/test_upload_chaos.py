@@ -23,7 +23,7 @@ from PIL import Image
 from tests.app.conftest import migrate
 from tests.e2e.conftest import Processes, api_client, free_port
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 CLASSES = ["power_drill", "bowl"]
 

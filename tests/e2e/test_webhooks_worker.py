@@ -26,7 +26,7 @@ from app.core.settings import get_settings
 from tests.app.core.test_webhooks import DripServer, Receiver, overlapping
 from tests.e2e.conftest import SECRET_KEY, Processes, RedisServer, wait_until
 
-pytestmark = [pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 SCHEDULE = "[0.3, 10.0, 0.3]"
 

@@ -23,6 +23,8 @@ class _Options:
     n_points: int = 6000
     kind: Literal["a", "b"] = "a"
     scales_m: tuple[float, ...] = (0.02, 0.01)  # coarse to fine
+    # refinement
+    iterations: int = 20  # per scale; raise when ICP stops early
     limit: float | None = None
     inner: _Inner = field(default_factory=_Inner)
 
@@ -32,6 +34,8 @@ def test_comment_above_a_field_is_its_meaning_and_a_short_first_line_its_group()
     assert comments["seed"] == ("", "")
     assert comments["n_points"] == ("sampling", "points drawn from the mesh, before thinning")
     assert comments["scales_m"] == ("sampling", "coarse to fine")
+    assert comments["iterations"] == ("refinement", "per scale; raise when ICP stops early")
+    assert comments["limit"] == ("refinement", "")
 
 
 def test_types_defaults_and_presets_are_rendered_as_a_reader_writes_them() -> None:

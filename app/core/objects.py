@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import math
 from contextlib import nullcontext
+from dataclasses import dataclass
 from pathlib import PurePosixPath
 from typing import Any, BinaryIO
 
@@ -87,7 +88,7 @@ def _finite(value: Any) -> bool:
 
 def _rotation(matrix: Any, where: str) -> None:
     """A 4×4 proper rotation (about a point) with last row 0 0 0 1, with the worker's
-    tolerances (``workers.pipeline.symmetry``)."""
+    tolerances (``workers.pipeline.model.symmetry_group``)."""
     if not (
         isinstance(matrix, list)
         and len(matrix) == 4
@@ -183,15 +184,25 @@ def _check_name_free(session: Session, name: str) -> None:
         raise Conflict(f"an object named {name!r} already exists", code="ObjectExists")
 
 
+@dataclass(frozen=True)
+class ModelUpload:
+    """A library object as uploaded: the detector class ``name``, the model file (its client
+    ``filename``, whose suffix names the format, and a binary stream ``source``), its
+    ``units`` (m, cm or mm) and the requested ``symmetry`` (``auto``, ``none``, a JSON spec,
+    or None for auto)."""
+
+    name: str
+    filename: str
+    source: BinaryIO
+    units: str
+    symmetry: str | None
+
+
 def create(
     session: Session,
     storage: LocalStorage,
+    upload: ModelUpload,
     *,
-    name: str,
-    filename: str,
-    source: BinaryIO,
-    units: str,
-    symmetry: str | None,
     max_bytes: int,
     lookup: sessionmaker[Session] | None = None,
 ) -> tuple[LibraryObject, Job]:
@@ -202,7 +213,8 @@ def create(
     ``lookup`` opens a short read-only session for the name check made before the file is
     stored, so that ``session`` is used only for the insert (on SQLite its write lock is
     then not held while a large file is written). Without it ``session`` does both."""
-    name = name.strip()
+    filename, source, units = upload.filename, upload.source, upload.units
+    name = upload.name.strip()
     if not name:
         raise InvalidInput("name: the detector class name of the object")
     if (problem := jsondoc.text_problem(name)) is not None:
@@ -214,7 +226,7 @@ def create(
         raise InvalidInput(
             f"file: {filename!r} is not a model file ({', '.join(sorted(MODEL_SUFFIXES))})"
         )
-    spec = parse_symmetry(symmetry)
+    spec = parse_symmetry(upload.symmetry)
     with nullcontext(session) if lookup is None else lookup() as reader:
         _check_name_free(reader, name)
     object_id = new_id()

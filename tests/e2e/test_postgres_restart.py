@@ -158,11 +158,9 @@ def test_postgres_restart_mid_job_finishes_exactly_once(
         obj, job = objects.create(
             s,
             storage,
-            name="torus",
-            filename="torus.ply",
-            source=fh,
-            units="m",
-            symmetry=None,
+            objects.ModelUpload(
+                name="torus", filename="torus.ply", source=fh, units="m", symmetry=None
+            ),
             max_bytes=10**8,
         )
         object_id, job_id = obj.id, job.id

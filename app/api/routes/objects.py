@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, File, Form, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Form, Response, UploadFile, status
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, MALFORMED, TOO_LARGE, ErrorOut, conflict
@@ -13,6 +13,19 @@ from app.core import objects
 from app.core.db import get_read_session_factory
 
 router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
+
+
+def model_upload(
+    file: Annotated[UploadFile, File(description=".ply .obj .stl .glb .off .pcd")],
+    name: Annotated[str, Form(description="the detector class name")],
+    units: Annotated[str, Form(description="m, cm or mm")] = "m",
+    symmetry: Annotated[str, Form(description="auto, none, or a JSON spec")] = "auto",
+) -> objects.ModelUpload:
+    """The multipart form of ``POST /objects`` (its fields, in this order, are the request
+    body in the OpenAPI document)."""
+    return objects.ModelUpload(
+        name=name, filename=file.filename or "", source=file.file, units=units, symmetry=symmetry
+    )
 
 
 @router.post(
@@ -26,26 +39,19 @@ router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
     },
 )
 def create_object(
-    file: Annotated[UploadFile, File(description=".ply .obj .stl .glb .off .pcd")],
-    name: Annotated[str, Form(description="the detector class name")],
+    upload: Annotated[objects.ModelUpload, Depends(model_upload)],
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
     response: Response,
     _key: AdminKey,
-    units: Annotated[str, Form(description="m, cm or mm")] = "m",
-    symmetry: Annotated[str, Form(description="auto, none, or a JSON spec")] = "auto",
 ) -> ObjectRead:
     """Add a model to the library; a job samples it, measures its diameter and detects its
     symmetry (poll the job, or GET the object until `state` is `ready`)."""
     obj, job = objects.create(
         session,
         storage,
-        name=name,
-        filename=file.filename or "",
-        source=file.file,
-        units=units,
-        symmetry=symmetry,
+        upload,
         max_bytes=settings.max_file_bytes,
         lookup=get_read_session_factory(),  # the write lock only for the insert (SQLite)
     )

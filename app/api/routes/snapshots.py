@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import APIRouter, File, Header, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Header, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 
 from app.api.deps import AdminKey, CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
@@ -26,6 +27,36 @@ def _parts(files: list[UploadFile] | None) -> list[ingest.UploadPart]:
     return [ingest.UploadPart(f.filename or "", f.file) for f in files or []]
 
 
+@dataclass(frozen=True)
+class CaptureUpload:
+    """The files of one capture upload and its optional ``Idempotency-Key``."""
+
+    files: ingest.UploadFiles
+    idempotency_key: str | None
+
+
+def capture_upload(
+    images: Annotated[list[UploadFile] | None, File(description="JPEG or PNG photos")] = None,
+    detections: Annotated[
+        list[UploadFile] | None, File(description="YOLO .txt files, one per image stem")
+    ] = None,
+    cameras: Annotated[UploadFile | None, File(description="optional cameras.json")] = None,
+    archive: Annotated[
+        UploadFile | None, File(description=".zip, .tar or .tar.gz holding the same files")
+    ] = None,
+    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+) -> CaptureUpload:
+    """The multipart form and header of a capture upload (these fields, in this order, are
+    the request body in the OpenAPI document; a bad header is reported before a bad file)."""
+    files = ingest.UploadFiles(
+        images=_parts(images),
+        detections=_parts(detections),
+        cameras=ingest.UploadPart(cameras.filename or "", cameras.file) if cameras else None,
+        archive=ingest.UploadPart(archive.filename or "", archive.file) if archive else None,
+    )
+    return CaptureUpload(files, idempotency_key)
+
+
 @router.post(
     "/environments/{environment_id}/snapshots",
     status_code=status.HTTP_202_ACCEPTED,
@@ -45,15 +76,7 @@ def upload_snapshot(
     settings: SettingsDep,
     response: Response,
     key: CaptureKey,
-    images: Annotated[list[UploadFile] | None, File(description="JPEG or PNG photos")] = None,
-    detections: Annotated[
-        list[UploadFile] | None, File(description="YOLO .txt files, one per image stem")
-    ] = None,
-    cameras: Annotated[UploadFile | None, File(description="optional cameras.json")] = None,
-    archive: Annotated[
-        UploadFile | None, File(description=".zip, .tar or .tar.gz holding the same files")
-    ] = None,
-    idempotency_key: Annotated[str | None, Header(max_length=200)] = None,
+    upload: Annotated[CaptureUpload, Depends(capture_upload)],
 ) -> SnapshotAccepted:
     """Upload a capture (loose files or one archive); a job reconstructs and compares it."""
     auth.require_environment(key, environment_id)
@@ -62,11 +85,8 @@ def upload_snapshot(
         storage,
         settings,
         environment_id,
-        images=_parts(images),
-        detections=_parts(detections),
-        cameras=ingest.UploadPart(cameras.filename or "", cameras.file) if cameras else None,
-        archive=ingest.UploadPart(archive.filename or "", archive.file) if archive else None,
-        idempotency_key=idempotency_key,
+        upload.files,
+        idempotency_key=upload.idempotency_key,
         # Reads in short sessions of their own: this request's session takes the database's
         # write lock (SQLite) only for the insert, not while the files are checked.
         lookup=get_read_session_factory(),

@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.workers.pipeline.test_reconstruct_scene import k_matrix, render, ring_poses, texture
+from tests.workers.pipeline.reconstruct_scene import k_matrix, render, ring_poses, texture
 from workers.pipeline.geometry import make_rigid, transform_points
 from workers.pipeline.reconstruct.align import refine_alignment
 from workers.pipeline.reconstruct.errors import DenseReconstructionFailed
 from workers.pipeline.reconstruct.mvs import (
     DenseView,
     Neighbours,
+    VerifiedDepths,
     _far_partners,
     _far_seed_partners,
     _overlay_far,
@@ -72,6 +73,7 @@ def test_consistency_filter_removes_injected_outliers() -> None:
     assert len(kept) >= 0.95 * total_true * 0.95  # some border pixels fall outside neighbours
 
 
+@pytest.mark.slow
 def test_far_pixels_use_the_far_consistency_tolerance() -> None:
     """View 0's depth is true, its 7 neighbours' 2 % too deep. With the floor (1-1.5 m) counted
     as far (far_min_depth_m = 0.5) and a 3 % far tolerance, view 0's pixels that its
@@ -118,16 +120,20 @@ def test_a_refuted_far_depth_falls_back_to_its_verified_one_checked_by_its_views
     verified = [np.zeros(d.shape, np.bool_) for d in depths]
     fallback = [truth[0], *(np.zeros_like(d) for d in depths[1:])]
     checked_by = [(2,), *(() for _ in range(n - 1))]
-    pts, _, src, own = consistent_points_split(
-        views, depths, nbrs, opts, verified=verified, checked_by=checked_by, fallback=fallback
+    kept = consistent_points_split(
+        views, depths, nbrs, opts, verified=VerifiedDepths(verified, checked_by, fallback)
     )
+    pts, src, own = kept.points_env, kept.verified, kept.depth_m
     seen_by_2 = int((truth[0] > 0).sum())
     assert 0.3 * seen_by_2 < len(pts) <= seen_by_2
     assert src.all() and np.median(np.abs(pts[:, 2])) < 1e-4
     assert np.isin(own, truth[0][truth[0] > 0]).all()  # the fallback depths, not 2 % deeper
-    for kwargs in ({"fallback": fallback}, {"checked_by": checked_by}):
+    for only in (
+        VerifiedDepths(verified, fallback=fallback),
+        VerifiedDepths(verified, checked_by=checked_by),
+    ):
         with pytest.raises(DenseReconstructionFailed):
-            consistent_points_split(views, depths, nbrs, opts, verified=verified, **kwargs)
+            consistent_points_split(views, depths, nbrs, opts, verified=only)
 
 
 def test_sgbm_pair_depths_are_millimetre_accurate_on_a_plane() -> None:

@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from tests.workers.pipeline.test_reconstruct_scene import k_matrix, ring_poses
+from tests.workers.pipeline.reconstruct_scene import k_matrix, ring_poses
 from workers.pipeline.errors import ShapeError
 from workers.pipeline.reconstruct.mvs import DenseView, Neighbours, consistent_points_split
 from workers.pipeline.reconstruct.options import ReconstructOptions
 from workers.pipeline.reconstruct.planar import (
+    ViewChoice,
     coverage_views,
     detect_planes,
     fill_depths,
@@ -259,15 +260,10 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     pairs = list(zip(filled, start, strict=True))
     assert all(np.array_equal(m, f != s) for m, (f, s) in zip(from_plane, pairs, strict=True))
     opts = replace(OPTS, point_stride=1)
-    pts, _, src, depth_m = consistent_points_split(
-        views,
-        filled,
-        _ring_neighbours(n),
-        opts,
-        verified=from_plane,
-        checked_by=fill.checked_by,
-        fallback=fill.fallback,
+    kept = consistent_points_split(
+        views, filled, _ring_neighbours(n), opts, verified=fill.verified()
     )
+    pts, src, depth_m = kept.points_env, kept.verified, kept.depth_m
     # distance to the floor or to the cube (|x|, |y| ≤ 0.2, 0 ≤ z ≤ 0.4)
     q = np.abs(pts - [0.0, 0.0, 0.2]) - 0.2
     to_cube = np.abs(np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0))
@@ -326,13 +322,13 @@ def test_coverage_views_pick_the_views_that_see_the_points() -> None:
     def free(*keep: int) -> list[NDArray[np.float32]]:
         return [empty if j in keep else wall for j in range(len(views))]
 
-    chosen = coverage_views(0, views, pts, free(*range(9)), ks, 4, 5)
+    chosen = coverage_views(0, views, pts, free(*range(9)), ks, ViewChoice(4, 5))
     assert len(chosen) == 2 and 0 not in chosen
-    assert set(coverage_views(0, views, pts, free(0, 3, 5), ks, 4, 5)) == {3, 5}
-    assert coverage_views(0, views, pts, free(0, 8), ks, 4, 5) == ()
-    assert coverage_views(0, views, pts[:0], free(*range(9)), ks, 4, 5) == ()
+    assert set(coverage_views(0, views, pts, free(0, 3, 5), ks, ViewChoice(4, 5))) == {3, 5}
+    assert coverage_views(0, views, pts, free(0, 8), ks, ViewChoice(4, 5)) == ()
+    assert coverage_views(0, views, pts[:0], free(*range(9)), ks, ViewChoice(4, 5)) == ()
     with pytest.raises(ShapeError):
-        coverage_views(0, views, pts[:, :2], free(*range(9)), ks, 4, 5)
+        coverage_views(0, views, pts[:, :2], free(*range(9)), ks, ViewChoice(4, 5))
 
 
 def test_walls_off_a_rectangular_layout_by_a_small_angle_are_turned_onto_it() -> None:

@@ -1,4 +1,4 @@
-"""Fusion of consistent depth points into one cloud, outlier removal, PLY I/O, and the
+"""Fusion of consistent depth points into one cloud, PLY I/O, and the
 pycolmap CUDA dense path (used where ``pycolmap.has_cuda`` and the ``cuda_dense`` option)."""
 
 from __future__ import annotations
@@ -66,8 +66,7 @@ def voxel_average(
 def fuse_points(
     points: FloatArray, colors_rgb: NDArray[np.uint8], options: ReconstructOptions
 ) -> tuple[FloatArray, NDArray[np.uint8]]:
-    """Voxel-average at ``voxel_size_m``, then statistical outlier removal when
-    ``sor_neighbours`` > 0.
+    """Voxel-average at ``voxel_size_m`` (0: the points as they are).
 
     (N, 3) metres and (N, 3) uint8 in, (M, 3) and (M, 3) out. Raises
     DenseReconstructionFailed when nothing is left.
@@ -75,13 +74,8 @@ def fuse_points(
     pts, cols = np.asarray(points, np.float64), np.asarray(colors_rgb, np.uint8)
     if options.voxel_size_m > 0:
         pts, cols = voxel_average(pts, options.voxel_size_m, cols)
-    if options.sor_neighbours > 0 and len(pts) > options.sor_neighbours:
-        pcd, _ = to_o3d(pts, cols).remove_statistical_outlier(
-            options.sor_neighbours, options.sor_std_ratio
-        )
-        pts, cols = from_o3d(pcd)
     if len(pts) == 0:
-        raise DenseReconstructionFailed("the fused cloud is empty after outlier removal")
+        raise DenseReconstructionFailed("the fused cloud is empty")
     return pts, cols
 
 

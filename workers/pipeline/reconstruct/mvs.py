@@ -395,6 +395,172 @@ def _textureless(gray: NDArray[np.uint8], block: int, min_std: float = 1.0) -> N
     return np.asarray(sq - mean * mean < min_std * min_std, dtype=np.bool_)
 
 
+@dataclass(frozen=True)
+class _Rectification:
+    """A stereo pair's rectification (cv2.stereoRectify): per view R (3, 3) and P (3, 4),
+    whether the pair is ``vertical`` (its baseline along y) and ``flip``ped (src left of or
+    above ref), focal ``f_px`` and ``baseline_m``. Canonical images are the rectified ones
+    transposed and mirrored so that ref is the left image of a horizontal pair."""
+
+    r_ref: FloatArray
+    r_src: FloatArray
+    p_ref: FloatArray
+    p_src: FloatArray
+    vertical: bool
+    flip: bool
+    f_px: float
+    baseline_m: float
+
+    def canon(self, img: NDArray[Any]) -> NDArray[Any]:
+        out = img.T if self.vertical else img
+        return np.ascontiguousarray(out[:, ::-1] if self.flip else out)
+
+    def uncanon(self, img: NDArray[Any]) -> NDArray[Any]:
+        out = img[:, ::-1] if self.flip else img
+        return np.ascontiguousarray(out.T if self.vertical else out)
+
+
+def _rectify(ref: DenseView, src: DenseView) -> _Rectification:
+    w, h = ref.size
+    src_from_ref = src.cam_from_env @ ref.env_from_cam
+    rot = np.ascontiguousarray(src_from_ref[:3, :3])
+    trans = np.ascontiguousarray(src_from_ref[:3, 3].reshape(3, 1))
+    r1, r2, p1, p2, _, _, _ = (
+        np.asarray(m, np.float64)
+        for m in cv2.stereoRectify(
+            ref.k_matrix,
+            np.zeros(5),
+            src.k_matrix,
+            np.zeros(5),
+            (w, h),
+            rot,
+            trans,
+            flags=cv2.CALIB_ZERO_DISPARITY,
+            alpha=-1,
+        )
+    )
+    vertical = abs(p2[1, 3]) > abs(p2[0, 3])
+    tx = p2[1, 3] if vertical else p2[0, 3]
+    f = float(p1[0, 0])
+    # flip: src lies left (or above) of ref in the rectified frame
+    return _Rectification(r1, r2, p1, p2, bool(vertical), bool(tx > 0), f, abs(float(tx)) / f)
+
+
+def _sgbm_window(
+    ref: DenseView,
+    rect: _Rectification,
+    points_env: FloatArray,
+    options: ReconstructOptions,
+    far_range: bool,
+) -> tuple[int, int] | None:
+    """SGBM (minDisparity, numDisparities) of the pair from its (N, 3) shared sparse points
+    (:func:`disparity_window`, :func:`far_disparity_window` with ``far_range``); None when
+    fewer than 5 of them lie in front of the rectified ref camera."""
+    p_cam = points_env @ ref.cam_from_env[:3, :3].T + ref.cam_from_env[:3, 3]
+    z_rect = (p_cam @ rect.r_ref.T)[:, 2]
+    z_rect = z_rect[z_rect > 1e-6]
+    if len(z_rect) < 5:
+        return None
+    f, baseline = rect.f_px, rect.baseline_m
+    if far_range:
+        return far_disparity_window(
+            f * baseline, options.far_min_depth_m, options.far_max_disparities
+        )
+    return disparity_window(f * baseline / z_rect, options.max_disparities)
+
+
+@dataclass(frozen=True)
+class _RectifiedView:
+    """One view of a pair on the canonical rectified grid: ``gray`` (h, w) uint8, ``valid``
+    (h, w) bool (inside the source image), and ``rows`` (h,) bool, the rows worth matching
+    for a far-range pair (None: no near depths given)."""
+
+    gray: NDArray[np.uint8]
+    valid: NDArray[np.bool_]
+    rows: NDArray[np.bool_] | None
+
+
+def _rectified_view(
+    view: DenseView,
+    r: FloatArray,
+    p: FloatArray,
+    rect: _Rectification,
+    near: NDArray[np.float32] | None,
+    options: ReconstructOptions,
+) -> _RectifiedView:
+    """``view`` remapped by its rectification R ``r``, P ``p``; with ``near`` (its (H, W)
+    near-range depth map) the rows where its known depths are ≥ 5 % beyond 0.8 ×
+    ``far_min_depth_m`` (every row inside the image when it knows < 20 % of its pixels)."""
+    w, h = view.size
+    m1, m2 = cv2.initUndistortRectifyMap(view.k_matrix, np.zeros(5), r, p, (w, h), cv2.CV_32FC1)
+    gray = cv2.cvtColor(view.image, cv2.COLOR_BGR2GRAY)
+    rect_gray = rect.canon(np.asarray(cv2.remap(gray, m1, m2, cv2.INTER_LINEAR), np.uint8))
+    inside = cv2.remap(np.full((h, w), 255, np.uint8), m1, m2, cv2.INTER_NEAREST)
+    valid = rect.canon(np.asarray(inside, np.uint8)) > 0
+    if near is None:
+        return _RectifiedView(rect_gray, valid, None)
+    counts = []
+    for mask in (near > 0, near >= 0.8 * options.far_min_depth_m):
+        warped = cv2.remap(mask.astype(np.uint8), m1, m2, cv2.INTER_NEAREST)
+        counts.append(rect.canon(np.asarray(warped, np.uint8)).sum(axis=1))
+    inside_n = valid.sum(axis=1)
+    if counts[0].sum() < 0.2 * inside_n.sum():  # too little known: match every row
+        rows = inside_n > 0
+    else:
+        rows = (counts[1] >= 0.05 * np.maximum(counts[0], 1)) & (counts[1] > 0)
+    return _RectifiedView(rect_gray, valid, rows)
+
+
+def _sgbm_disparity(
+    left: _RectifiedView,
+    right: _RectifiedView,
+    window: tuple[int, int],
+    rows_used: slice,
+    far_range: bool,
+    options: ReconstructOptions,
+) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """(left, right) canonical disparity maps in px (NaN = unknown) of one SGBM run over
+    ``rows_used``: matches at either end of the window, outside the images or in textureless
+    windows are dropped; the right map is the left one warped (:func:`_right_disparity`)."""
+    min_disp, num = window
+    bs = options.sgbm_block_size
+    sgbm = cv2.StereoSGBM.create(
+        minDisparity=min_disp,
+        numDisparities=num,
+        blockSize=bs,
+        P1=8 * bs * bs,
+        P2=32 * bs * bs,
+        disp12MaxDiff=1,
+        uniquenessRatio=10,
+        speckleWindowSize=100,
+        speckleRange=2,
+        mode=_SGBM_MODES[options.sgbm_mode],
+    )
+    disp = np.full(left.gray.shape, -1.0, np.float32)
+    disp[rows_used] = sgbm.compute(
+        np.ascontiguousarray(left.gray[rows_used]), np.ascontiguousarray(right.gray[rows_used])
+    ).astype(np.float32)
+    disp /= 16.0
+    # matches at either end of the window are surfaces outside it
+    at_ends = (disp <= max(min_disp, 0) + 0.5) | (far_range & (disp >= min_disp + num - 1.5))
+    disp[at_ends | ~left.valid | _textureless(left.gray, bs)] = np.nan
+    disp_src = _right_disparity(disp)
+    disp_src[~right.valid | _textureless(right.gray, bs)] = np.nan
+    return disp, disp_src
+
+
+def _rows_to_match(left: _RectifiedView, right: _RectifiedView) -> slice | None:
+    """The canonical rows SGBM must match: all, or those either view wants, ± 8 (None:
+    none is wanted)."""
+    if left.rows is None or right.rows is None:
+        return slice(0, left.gray.shape[0])
+    want_rows = left.rows | right.rows
+    idx = np.flatnonzero(want_rows)
+    if len(idx) == 0:
+        return None
+    return slice(max(0, int(idx[0]) - 8), min(len(want_rows), int(idx[-1]) + 9))
+
+
 def pair_depths(
     ref: DenseView,
     src: DenseView,
@@ -416,104 +582,25 @@ def pair_depths(
     w, h = ref.size
     if src.size != ref.size:
         raise ShapeError("stereo pairs must share an image size at MVS scale")
-    src_from_ref = src.cam_from_env @ ref.env_from_cam
-    rot = np.ascontiguousarray(src_from_ref[:3, :3])
-    trans = np.ascontiguousarray(src_from_ref[:3, 3].reshape(3, 1))
-    r1, r2, p1, p2, _, _, _ = (
-        np.asarray(m, np.float64)
-        for m in cv2.stereoRectify(
-            ref.k_matrix,
-            np.zeros(5),
-            src.k_matrix,
-            np.zeros(5),
-            (w, h),
-            rot,
-            trans,
-            flags=cv2.CALIB_ZERO_DISPARITY,
-            alpha=-1,
-        )
-    )
-    vertical = abs(p2[1, 3]) > abs(p2[0, 3])
-    tx = p2[1, 3] if vertical else p2[0, 3]
-    flip = tx > 0  # src lies left (or above) of ref in the rectified frame
-    f = float(p1[0, 0])
-    baseline = abs(float(tx)) / f
+    rect = _rectify(ref, src)
     empty = np.zeros((h, w), np.float32)
-
-    # disparity range from the sparse points in the rectified ref frame
-    p_cam = points_env @ ref.cam_from_env[:3, :3].T + ref.cam_from_env[:3, 3]
-    z_rect = (p_cam @ r1.T)[:, 2]
-    z_rect = z_rect[z_rect > 1e-6]
-    if len(z_rect) < 5:
+    window = _sgbm_window(ref, rect, points_env, options, far_range)
+    if window is None:
         return empty, empty.copy()
-    if far_range:
-        min_disp, num = far_disparity_window(
-            f * baseline, options.far_min_depth_m, options.far_max_disparities
-        )
-    else:
-        min_disp, num = disparity_window(f * baseline / z_rect, options.max_disparities)
-
-    def canon(img: NDArray[Any]) -> NDArray[Any]:
-        out = img.T if vertical else img
-        return np.ascontiguousarray(out[:, ::-1] if flip else out)
-
-    def uncanon(img: NDArray[Any]) -> NDArray[Any]:
-        out = img[:, ::-1] if flip else img
-        return np.ascontiguousarray(out.T if vertical else out)
-
-    rect: list[NDArray[np.uint8]] = []
-    valid: list[NDArray[np.bool_]] = []
-    want_rows = None
-    for k, (v, r, p) in enumerate(((ref, r1, p1), (src, r2, p2))):
-        m1, m2 = cv2.initUndistortRectifyMap(v.k_matrix, np.zeros(5), r, p, (w, h), cv2.CV_32FC1)
-        gray = cv2.cvtColor(v.image, cv2.COLOR_BGR2GRAY)
-        rect.append(canon(np.asarray(cv2.remap(gray, m1, m2, cv2.INTER_LINEAR), np.uint8)))
-        inside = cv2.remap(np.full((h, w), 255, np.uint8), m1, m2, cv2.INTER_NEAREST)
-        valid.append(canon(np.asarray(inside, np.uint8)) > 0)
-        if near_depths is not None:
-            near = near_depths[k]
-            counts = []
-            for mask in (near > 0, near >= 0.8 * options.far_min_depth_m):
-                warped = cv2.remap(mask.astype(np.uint8), m1, m2, cv2.INTER_NEAREST)
-                counts.append(canon(np.asarray(warped, np.uint8)).sum(axis=1))
-            inside_n = valid[-1].sum(axis=1)
-            if counts[0].sum() < 0.2 * inside_n.sum():  # too little known: match every row
-                rows = inside_n > 0
-            else:
-                rows = (counts[1] >= 0.05 * np.maximum(counts[0], 1)) & (counts[1] > 0)
-            want_rows = rows if want_rows is None else want_rows | rows
-    rows_used = slice(0, rect[0].shape[0])
-    if want_rows is not None:
-        idx = np.flatnonzero(want_rows)
-        if len(idx) == 0:
-            return empty, empty.copy()
-        rows_used = slice(max(0, int(idx[0]) - 8), min(len(want_rows), int(idx[-1]) + 9))
-    bs = options.sgbm_block_size
-    sgbm = cv2.StereoSGBM.create(
-        minDisparity=min_disp,
-        numDisparities=num,
-        blockSize=bs,
-        P1=8 * bs * bs,
-        P2=32 * bs * bs,
-        disp12MaxDiff=1,
-        uniquenessRatio=10,
-        speckleWindowSize=100,
-        speckleRange=2,
-        mode=_SGBM_MODES[options.sgbm_mode],
-    )
-    disp = np.full(rect[0].shape, -1.0, np.float32)
-    disp[rows_used] = sgbm.compute(
-        np.ascontiguousarray(rect[0][rows_used]), np.ascontiguousarray(rect[1][rows_used])
-    ).astype(np.float32)
-    disp /= 16.0
-    # matches at either end of the window are surfaces outside it
-    at_ends = (disp <= max(min_disp, 0) + 0.5) | (far_range & (disp >= min_disp + num - 1.5))
-    disp[at_ends | ~valid[0] | _textureless(rect[0], bs)] = np.nan
-    disp_src = _right_disparity(disp)
-    disp_src[~valid[1] | _textureless(rect[1], bs)] = np.nan
+    near_ref, near_src = (None, None) if near_depths is None else near_depths
+    left = _rectified_view(ref, rect.r_ref, rect.p_ref, rect, near_ref, options)
+    right = _rectified_view(src, rect.r_src, rect.p_src, rect, near_src, options)
+    rows_used = _rows_to_match(left, right)
+    if rows_used is None:
+        return empty, empty.copy()
+    disp, disp_src = _sgbm_disparity(left, right, window, rows_used, far_range, options)
     return (
-        _depth_from_disparity(uncanon(disp), ref.k_matrix, r1, p1, baseline),
-        _depth_from_disparity(uncanon(disp_src), src.k_matrix, r2, p2, baseline),
+        _depth_from_disparity(
+            rect.uncanon(disp), ref.k_matrix, rect.r_ref, rect.p_ref, rect.baseline_m
+        ),
+        _depth_from_disparity(
+            rect.uncanon(disp_src), src.k_matrix, rect.r_src, rect.p_src, rect.baseline_m
+        ),
     )
 
 
@@ -657,17 +744,41 @@ def _sample_depth(
     return z, d
 
 
+@dataclass(frozen=True)
+class VerifiedDepths:
+    """Depths already verified photometrically (plane depths), one entry per view, for
+    :func:`consistent_points_split`: ``masks`` (H, W) bool, the verified pixels;
+    ``checked_by`` the views each view's verified depths were checked against (None: none);
+    ``fallback`` (H, W) float32 metres (0 = none, None: no fallbacks), a verified depth for
+    pixels that kept a measured one."""
+
+    masks: list[NDArray[np.bool_]]
+    checked_by: list[tuple[int, ...]] | None = None
+    fallback: list[NDArray[np.float32]] | None = None
+
+
+@dataclass(frozen=True)
+class ConsistentPoints:
+    """What :func:`consistent_points_split` keeps: ``points_env`` (M, 3) env-frame metres,
+    ``colors_rgb`` (M, 3) uint8, ``verified`` (M,) bool (from a verified pixel or a fallback
+    depth), ``depth_m`` (M,) float32 (the depth in metres the point had in its own view)."""
+
+    points_env: FloatArray
+    colors_rgb: NDArray[np.uint8]
+    verified: NDArray[np.bool_]
+    depth_m: NDArray[np.float32]
+
+
 def consistent_points(
     views: list[DenseView],
     depths: list[NDArray[np.float32]],
     neighbours: Neighbours,
     options: ReconstructOptions,
     progress: Progress = no_progress,
-    verified: list[NDArray[np.bool_]] | None = None,
 ) -> tuple[FloatArray, NDArray[np.uint8]]:
-    """The points and colours of :func:`consistent_points_split`, without their source."""
-    out = consistent_points_split(views, depths, neighbours, options, progress, verified)
-    return out[0], out[1]
+    """The (M, 3) points and (M, 3) RGB colours of :func:`consistent_points_split`."""
+    out = consistent_points_split(views, depths, neighbours, options, progress)
+    return out.points_env, out.colors_rgb
 
 
 def _agreement(
@@ -696,150 +807,183 @@ def _agreement(
     return support, acc
 
 
+@dataclass(frozen=True)
+class _Consistency:
+    """The inputs of one consistency check: the views, their (H, W) float32 depth maps
+    (metres), neighbours, options and the verified depths (None: none)."""
+
+    views: list[DenseView]
+    depths: list[NDArray[np.float32]]
+    neighbours: Neighbours
+    options: ReconstructOptions
+    verified: VerifiedDepths | None
+
+
 def consistent_points_split(
     views: list[DenseView],
     depths: list[NDArray[np.float32]],
     neighbours: Neighbours,
     options: ReconstructOptions,
     progress: Progress = no_progress,
-    verified: list[NDArray[np.bool_]] | None = None,
-    checked_by: list[tuple[int, ...]] | None = None,
-    fallback: list[NDArray[np.float32]] | None = None,
-) -> tuple[FloatArray, NDArray[np.uint8], NDArray[np.bool_], NDArray[np.float32]]:
-    """Fused points that pass the geometric consistency check, and their RGB colours.
+    verified: VerifiedDepths | None = None,
+) -> ConsistentPoints:
+    """Fused points that pass the geometric consistency check, their RGB colours and source.
 
     A pixel's 3D point is kept when its depth in ≥ ``consistency_min_views`` of the view's
     consistency neighbours agrees with their depth maps within ``consistency_rel_tol``
     (relative; ``far_consistency_rel_tol`` for depths beyond ``far_min_depth_m`` when
     ``far_range``); the kept point is the mean of its own and the agreeing back-projections.
-    Pixels set in ``verified`` (per view (H, W) bool: depths already verified
-    photometrically, e.g. plane depths) need ≥ ``planar_consistency_min_views`` instead,
-    and those at ≥ ``far_min_depth_m`` are taken from every ``planar_far_row_stride``-th
-    row (not only every ``point_stride``-th). For them the views of ``checked_by`` (per view:
-    those its verified depths were checked against) count as well, without entering the
-    mean (their far SGBM depths agree within 3 % and would pull an exact plane depth by as
-    much). ``fallback`` (per view (H, W) float32 metres, 0 = none; needs ``verified``): a
-    verified depth for pixels that kept a measured one; where that fails the check, the
-    pixel is tried again at its fallback depth as a verified pixel (a far SGBM depth that
-    no neighbour confirms counts as none, where a verified plane depth would have filled in).
-    Returns ((M, 3) env-frame metres, (M, 3) uint8 RGB, (M,) bool: from a ``verified``
-    pixel or a fallback depth, (M,) float32: the depth in metres the point had in its own view).
+    Pixels set in ``verified.masks`` need ≥ ``planar_consistency_min_views`` instead, and
+    those at ≥ ``far_min_depth_m`` are taken from every ``planar_far_row_stride``-th row
+    (not only every ``point_stride``-th). For them the views of ``verified.checked_by``
+    count as well, without entering the mean (their far SGBM depths agree within 3 % and
+    would pull an exact plane depth by as much). Where a pixel with a ``verified.fallback``
+    depth fails the check, it is tried again at its fallback depth as a verified pixel (a far
+    SGBM depth that no neighbour confirms counts as none, where a verified plane depth would
+    have filled in). Raises ShapeError for mismatched inputs, DenseReconstructionFailed when
+    no point survives.
     """
-    if len(views) != len(depths):
-        raise ShapeError(f"{len(views)} views but {len(depths)} depth maps")
-    if verified is not None and [m.shape for m in verified] != [d.shape for d in depths]:
-        raise ShapeError("verified masks must match the depth maps one to one")
-    if fallback is not None and (
-        verified is None or [m.shape for m in fallback] != [d.shape for d in depths]
-    ):
-        raise ShapeError("fallback depths need verified masks and must match the depth maps")
-    if checked_by is not None and len(checked_by) != len(views):
-        raise ShapeError(f"{len(views)} views but checked_by for {len(checked_by)}")
-    all_pts: list[FloatArray] = []
-    all_cols: list[NDArray[np.uint8]] = []
-    all_src: list[NDArray[np.bool_]] = []
-    all_depth: list[NDArray[np.float32]] = []
-    tol = options.consistency_rel_tol
-
-    def check(
-        i: int,
-        points: FloatArray,
-        depth_m: NDArray[np.float32],
-        verified_px: NDArray[np.bool_],
-        far: bool,
-    ) -> tuple[NDArray[np.bool_], FloatArray]:
-        """Which of view i's (N, 3) points at own depths ``depth_m`` pass, and the kept ones
-        averaged with the agreeing neighbours' measurements; ``far``: the looser tolerance
-        from ``far_min_depth_m`` on."""
-        rel_tol = np.full(len(points), tol, np.float32)
-        if far:
-            rel_tol[depth_m >= options.far_min_depth_m] = options.far_consistency_rel_tol
-        support, acc = _agreement(views, depths, points, rel_tol, neighbours.consistency[i])
-        need = np.where(
-            verified_px, options.planar_consistency_min_views, options.consistency_min_views
-        ).astype(np.int32)
-        lacking = verified_px & (support < need)
-        checked = _checked_support(
-            views, depths, points, rel_tol, lacking, i, neighbours, checked_by
-        )
-        keep = support + checked >= need  # checked: agreeing views not in the mean
-        return keep, acc[keep] / (1.0 + support[keep, None])
-
-    def take(
-        view: DenseView,
-        points: FloatArray,
-        src: NDArray[np.bool_],
-        depth_m: NDArray[np.float32],
-        px: NDArray[np.int64],
-    ) -> None:
-        if len(points):
-            all_pts.append(points)
-            all_src.append(src)
-            all_depth.append(depth_m)
-            all_cols.append(np.ascontiguousarray(view.image[px[:, 1], px[:, 0]][:, ::-1]))
-
-    for i, view in enumerate(views):
-        pts, pix = backproject(view, depths[i], options.point_stride)
-        rows = options.planar_far_row_stride
-        if verified is not None and rows < options.point_stride:
-            # verified far depths (plane depths) also on the rows between the grid's: seen
-            # at a grazing angle, a far floor pixel's footprint is 2-5× longer than wide
-            far_plane = verified[i] & (depths[i] >= options.far_min_depth_m)
-            cols = options.point_stride
-            extra = np.zeros_like(depths[i])
-            extra[::rows, ::cols] = np.where(far_plane, depths[i], 0.0)[::rows, ::cols]
-            extra[::cols, ::cols] = 0.0
-            more_pts, more_pix = backproject(view, extra, 1)
-            pts, pix = np.concatenate([pts, more_pts]), np.concatenate([pix, more_pix])
-        if len(pts) == 0:
-            continue
-        own_depth = depths[i][pix[:, 1], pix[:, 0]]
-        src = np.zeros(len(pts), np.bool_)
-        if verified is not None:
-            src = verified[i][pix[:, 1], pix[:, 0]]
-        keep, fused = check(i, pts, own_depth, src, options.far_range)
-        take(view, fused, src[keep], own_depth[keep], pix[keep])
-        if fallback is not None:
-            alt = fallback[i][pix[:, 1], pix[:, 0]]
-            retry = ~keep & (alt > 0) & (own_depth > 0)
-            if retry.any():
-                # the retried pixel's ray at its fallback depth, as a verified pixel
-                centre = view.env_from_cam[:3, 3]
-                p_alt = centre + (pts[retry] - centre) * (alt[retry] / own_depth[retry])[:, None]
-                ok, fused = check(i, p_alt, alt[retry], np.ones(len(p_alt), np.bool_), True)
-                take(view, fused, np.ones(len(fused), np.bool_), alt[retry][ok], pix[retry][ok])
+    _check_consistency_inputs(views, depths, verified)
+    ctx = _Consistency(views, depths, neighbours, options, verified)
+    chunks: list[ConsistentPoints] = []
+    for i in range(len(views)):
+        chunks.extend(_view_consistent_points(ctx, i))
         progress("consistency", (i + 1) / len(views))
-    if not all_pts:
+    if not chunks:
         raise DenseReconstructionFailed(
             "no depth survived the multi-view consistency check; the scene may lack texture "
             "or the photos may not overlap enough"
         )
-    return (
-        np.concatenate(all_pts),
-        np.concatenate(all_cols).astype(np.uint8),
-        np.concatenate(all_src),
-        np.concatenate(all_depth),
+    return ConsistentPoints(
+        np.concatenate([c.points_env for c in chunks]),
+        np.concatenate([c.colors_rgb for c in chunks]).astype(np.uint8),
+        np.concatenate([c.verified for c in chunks]),
+        np.concatenate([c.depth_m for c in chunks]),
     )
 
 
+def _check_consistency_inputs(
+    views: list[DenseView], depths: list[NDArray[np.float32]], verified: VerifiedDepths | None
+) -> None:
+    if len(views) != len(depths):
+        raise ShapeError(f"{len(views)} views but {len(depths)} depth maps")
+    if verified is None:
+        return
+    if [m.shape for m in verified.masks] != [d.shape for d in depths]:
+        raise ShapeError("verified masks must match the depth maps one to one")
+    fallback = verified.fallback
+    if fallback is not None and [m.shape for m in fallback] != [d.shape for d in depths]:
+        raise ShapeError("fallback depths must match the depth maps one to one")
+    checked_by = verified.checked_by
+    if checked_by is not None and len(checked_by) != len(views):
+        raise ShapeError(f"{len(views)} views but checked_by for {len(checked_by)}")
+
+
+def _view_consistent_points(ctx: _Consistency, i: int) -> list[ConsistentPoints]:
+    """View i's kept points: its pixels at their own depths, then the pixels that failed at
+    their fallback depths (none, one or two non-empty chunks, in that order)."""
+    view, depth, options = ctx.views[i], ctx.depths[i], ctx.options
+    pts, pix = _view_pixels(ctx, i)
+    if len(pts) == 0:
+        return []
+    own_depth = depth[pix[:, 1], pix[:, 0]]
+    src = np.zeros(len(pts), np.bool_)
+    if ctx.verified is not None:
+        src = ctx.verified.masks[i][pix[:, 1], pix[:, 0]]
+    keep, fused = _check_points(ctx, i, pts, own_depth, src, options.far_range)
+    out = [_chunk(view, fused, src[keep], own_depth[keep], pix[keep])]
+    fallback = None if ctx.verified is None else ctx.verified.fallback
+    if fallback is not None:
+        alt = fallback[i][pix[:, 1], pix[:, 0]]
+        retry = ~keep & (alt > 0) & (own_depth > 0)
+        if retry.any():
+            # the retried pixel's ray at its fallback depth, as a verified pixel
+            centre = view.env_from_cam[:3, 3]
+            p_alt = centre + (pts[retry] - centre) * (alt[retry] / own_depth[retry])[:, None]
+            ok, fused = _check_points(
+                ctx, i, p_alt, alt[retry], np.ones(len(p_alt), np.bool_), True
+            )
+            out.append(
+                _chunk(view, fused, np.ones(len(fused), np.bool_), alt[retry][ok], pix[retry][ok])
+            )
+    return [c for c in out if len(c.points_env)]
+
+
+def _view_pixels(ctx: _Consistency, i: int) -> tuple[FloatArray, NDArray[np.int64]]:
+    """View i's back-projected (M, 3) env points and (M, 2) pixels (x, y): every
+    ``point_stride``-th pixel, plus verified far depths on every ``planar_far_row_stride``-th
+    row between them."""
+    view, depth, options = ctx.views[i], ctx.depths[i], ctx.options
+    pts, pix = backproject(view, depth, options.point_stride)
+    rows = options.planar_far_row_stride
+    if ctx.verified is not None and rows < options.point_stride:
+        # verified far depths (plane depths) also on the rows between the grid's: seen
+        # at a grazing angle, a far floor pixel's footprint is 2-5× longer than wide
+        far_plane = ctx.verified.masks[i] & (depth >= options.far_min_depth_m)
+        cols = options.point_stride
+        extra = np.zeros_like(depth)
+        extra[::rows, ::cols] = np.where(far_plane, depth, 0.0)[::rows, ::cols]
+        extra[::cols, ::cols] = 0.0
+        more_pts, more_pix = backproject(view, extra, 1)
+        pts, pix = np.concatenate([pts, more_pts]), np.concatenate([pix, more_pix])
+    return pts, pix
+
+
+def _chunk(
+    view: DenseView,
+    points: FloatArray,
+    src: NDArray[np.bool_],
+    depth_m: NDArray[np.float32],
+    px: NDArray[np.int64],
+) -> ConsistentPoints:
+    """Kept points with their colours at pixels ``px`` (M, 2) of ``view`` (BGR to RGB)."""
+    colors = np.ascontiguousarray(view.image[px[:, 1], px[:, 0]][:, ::-1])
+    return ConsistentPoints(points, colors, src, depth_m)
+
+
+def _check_points(
+    ctx: _Consistency,
+    i: int,
+    points: FloatArray,
+    depth_m: NDArray[np.float32],
+    verified_px: NDArray[np.bool_],
+    far: bool,
+) -> tuple[NDArray[np.bool_], FloatArray]:
+    """Which of view i's (N, 3) points at own depths ``depth_m`` pass, and the kept ones
+    averaged with the agreeing neighbours' measurements; ``far``: the looser tolerance from
+    ``far_min_depth_m`` on."""
+    options = ctx.options
+    rel_tol = np.full(len(points), options.consistency_rel_tol, np.float32)
+    if far:
+        rel_tol[depth_m >= options.far_min_depth_m] = options.far_consistency_rel_tol
+    own = ctx.neighbours.consistency[i]
+    support, acc = _agreement(ctx.views, ctx.depths, points, rel_tol, own)
+    need = np.where(
+        verified_px, options.planar_consistency_min_views, options.consistency_min_views
+    ).astype(np.int32)
+    lacking = verified_px & (support < need)
+    checked = _checked_support(ctx, points, rel_tol, lacking, i)
+    keep = support + checked >= need  # checked: agreeing views not in the mean
+    return keep, acc[keep] / (1.0 + support[keep, None])
+
+
 def _checked_support(
-    views: list[DenseView],
-    depths: list[NDArray[np.float32]],
+    ctx: _Consistency,
     points_env: FloatArray,
     rel_tol: NDArray[np.float32],
     lacking: NDArray[np.bool_],
     i: int,
-    neighbours: Neighbours,
-    checked_by: list[tuple[int, ...]] | None,
 ) -> NDArray[np.int32]:
-    """(N,) agreeing views among ``checked_by[i]`` (those not already consistency neighbours
-    of view ``i``) for the (N, 3) points flagged in ``lacking``; 0 for the others."""
+    """(N,) agreeing views among view ``i``'s ``checked_by`` views (those not already its
+    consistency neighbours) for the (N, 3) points flagged in ``lacking``; 0 for the others."""
     out = np.zeros(len(points_env), np.int32)
+    checked_by = None if ctx.verified is None else ctx.verified.checked_by
     if checked_by is None or not lacking.any():
         return out
-    extra = tuple(j for j in checked_by[i] if j != i and j not in neighbours.consistency[i])
+    own = ctx.neighbours.consistency[i]
+    extra = tuple(j for j in checked_by[i] if j != i and j not in own)
     if not extra:
         return out
     idx = np.flatnonzero(lacking)
-    out[idx], _ = _agreement(views, depths, points_env[idx], rel_tol[idx], extra)
+    out[idx], _ = _agreement(ctx.views, ctx.depths, points_env[idx], rel_tol[idx], extra)
     return out

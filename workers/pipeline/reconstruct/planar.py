@@ -39,7 +39,7 @@ from workers.pipeline.errors import ShapeError
 from workers.pipeline.geometry import as_points
 from workers.pipeline.reconstruct.common import Progress, no_progress
 from workers.pipeline.reconstruct.fusion import voxel_average
-from workers.pipeline.reconstruct.mvs import DenseView
+from workers.pipeline.reconstruct.mvs import DenseView, VerifiedDepths
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
 FloatArray = NDArray[np.float64]
@@ -541,37 +541,95 @@ def _check_views(views: list[DenseView], depths: list[F32]) -> None:
             raise ShapeError(f"{v.name}: depth map {d.shape}, image {v.image.shape[:2]}")
 
 
+@dataclass(frozen=True)
+class ViewChoice:
+    """How :func:`coverage_views` chooses verifying views: at most ``count`` of them, seeing
+    a point whole ``window``-pixel windows inside their grid, under a triangulation angle of
+    at least ``min_angle_deg``, a view's weight saturating at ``full_angle_deg``."""
+
+    count: int
+    window: int
+    min_angle_deg: float = 1.0
+    full_angle_deg: float = 5.0
+
+    @classmethod
+    def from_options(cls, options: ReconstructOptions) -> ViewChoice:
+        return cls(
+            options.planar_ncc_views,
+            options.planar_ncc_window,
+            options.planar_ncc_min_angle_deg,
+            options.planar_ncc_full_angle_deg,
+        )
+
+
+@dataclass(frozen=True)
+class _ScaledViews:
+    """Every view on the ZNCC grid (``planar_ncc_scale`` of its size): (h, w) float32 grey
+    images, (3, 3) scaled K, and (h, w) float32 depth maps in metres (0 = unknown,
+    nearest-neighbour downscaled)."""
+
+    grays: list[F32]
+    k_matrices: list[FloatArray]
+    depths: list[F32]
+
+
+def _scaled_views(views: list[DenseView], depths: list[F32], scale: float) -> _ScaledViews:
+    grays = [_gray(v, scale) for v in views]
+    small_depths = [
+        np.asarray(
+            cv2.resize(d, (g.shape[1], g.shape[0]), interpolation=cv2.INTER_NEAREST), np.float32
+        )
+        for d, g in zip(depths, grays, strict=True)
+    ]
+    return _ScaledViews(grays, [_scaled_k(v.k_matrix, scale) for v in views], small_depths)
+
+
+@dataclass(frozen=True)
+class _Candidates:
+    """View ``index``'s candidate plane depths on the ZNCC grid: ``depth`` (h, w) float32
+    metres of the nearest plane inside its extent (0: none), ``label`` (h, w) int16 which
+    plane (−1: none), ``mask`` (h, w) bool the pixels that may take it (plane depth ≥
+    ``planar_min_depth_m``, own depth none or ≥ ``far_min_depth_m``)."""
+
+    index: int
+    depth: F32
+    label: NDArray[np.int16]
+    mask: NDArray[np.bool_]
+
+
+def _candidates(
+    i: int, view: DenseView, planes: list[Plane], scaled: _ScaledViews, options: ReconstructOptions
+) -> _Candidates:
+    hs, ws = scaled.grays[i].shape
+    plane_s, label_s = plane_depths(view, planes, k_matrix=scaled.k_matrices[i], size=(ws, hs))
+    own_s = scaled.depths[i]
+    cand_s = (plane_s >= options.planar_min_depth_m) & (
+        (own_s <= 0) | (own_s >= options.far_min_depth_m)
+    )
+    return _Candidates(i, plane_s, label_s, cand_s)
+
+
 def _choose_views(
-    i: int,
+    cands: _Candidates,
     views: list[DenseView],
-    plane_s: F32,
-    cand_s: NDArray[np.bool_],
-    ks: list[FloatArray],
-    small_depths: list[F32],
+    scaled: _ScaledViews,
     options: ReconstructOptions,
     samples: int = 1000,
 ) -> tuple[int, ...]:
-    """:func:`coverage_views` for view ``i``'s candidate pixels (a strided subset of at most
-    about ``samples`` of them) at their plane depths on the scaled grid."""
-    ys, xs = np.nonzero(cand_s & (plane_s > 0))
+    """:func:`coverage_views` for view ``cands.index``'s candidate pixels (a strided subset of
+    at most about ``samples`` of them) at their plane depths on the scaled grid."""
+    i = cands.index
+    plane_s = cands.depth
+    ys, xs = np.nonzero(cands.mask & (plane_s > 0))
     step = max(1, len(ys) // samples)
     ys, xs = ys[::step], xs[::step]
-    k = ks[i]
+    k = scaled.k_matrices[i]
     z = plane_s[ys, xs].astype(np.float64)
     p_cam = np.stack([(xs - k[0, 2]) / k[0, 0] * z, (ys - k[1, 2]) / k[1, 1] * z, z], axis=1)
     env = views[i].env_from_cam
     pts = p_cam @ env[:3, :3].T + env[:3, 3]
-    return coverage_views(
-        i,
-        views,
-        pts,
-        small_depths,
-        ks,
-        options.planar_ncc_views,
-        options.planar_ncc_window,
-        options.planar_ncc_min_angle_deg,
-        options.planar_ncc_full_angle_deg,
-    )
+    choice = ViewChoice.from_options(options)
+    return coverage_views(i, views, pts, scaled.depths, scaled.k_matrices, choice)
 
 
 def coverage_views(
@@ -580,57 +638,33 @@ def coverage_views(
     points_env: FloatArray,
     depths: list[F32],
     k_matrices: list[FloatArray],
-    count: int,
-    window: int,
-    min_angle_deg: float = 1.0,
-    full_angle_deg: float = 5.0,
+    choice: ViewChoice,
 ) -> tuple[int, ...]:
-    """Up to ``count`` views to verify view ``i``'s plane points (N, 3, env metres) against,
-    chosen greedily: each time the view that sees the most of the points that fewer than two
-    chosen views see, each point counted with the weight min(sin θ / sin ``full_angle_deg``,
-    1) of its triangulation angle θ between the two views (none below ``min_angle_deg``).
+    """Up to ``choice.count`` views to verify view ``i``'s plane points (N, 3, env metres)
+    against, chosen greedily: each time the view that sees the most of the points that fewer
+    than two chosen views see, each point counted with the weight min(sin θ / sin
+    ``choice.full_angle_deg``, 1) of its triangulation angle θ between the two views (none
+    below ``choice.min_angle_deg``).
 
-    A view sees a point when it projects ≥ ``window`` // 2 pixels inside its grid (K of
-    ``k_matrices``, size of ``depths``) in front of it and its ``depths`` map there has
-    nothing nearer than 0.97 × the point's depth. A view that sees none: not chosen. On the
-    bench room (30 views on a ring, 4 chosen, weight saturating at 5°) this verified more
-    plane depths than the 4 widest baselines among the stereo, far-range and consistency
-    neighbours (known poses 0.902 -> 0.906 completeness, after capture 0.809 -> 0.837),
-    which often did not see a view's far corners at all; saturating at 30° instead (the
-    widest first) verified fewer (0.846 / 0.784): the quarter-scale ZNCC wants views that
-    see the plane at a similar scale and foreshortening. Raises ShapeError for bad shapes.
+    A view sees a point when it projects ≥ ``choice.window`` // 2 pixels inside its grid (K
+    of ``k_matrices``, size of ``depths``) in front of it and its ``depths`` map there has
+    nothing nearer than 0.97 × the point's depth. A view that sees none: not chosen. Views
+    that see the plane at a similar scale and foreshortening suit the quarter-scale ZNCC
+    better than the widest baselines (docs/decisions/reconstruct.md). Raises ShapeError for
+    bad shapes.
     """
     points_env = as_points(points_env, "points_env")
     if len(depths) != len(views) or len(k_matrices) != len(views):
         raise ShapeError(f"{len(views)} views, {len(depths)} depth maps, {len(k_matrices)} K")
-    centre_i = views[i].env_from_cam[:3, 3]
-    to_i = centre_i - points_env
-    to_i /= np.maximum(np.linalg.norm(to_i, axis=1, keepdims=True), 1e-12)
-    half = window // 2
     weight = np.zeros((len(views), len(points_env)), np.float64)
-    sin_full = np.sin(np.radians(full_angle_deg))
-    for j, view in enumerate(views):
-        if j == i:
-            continue
-        cam = view.cam_from_env
-        p = points_env @ cam[:3, :3].T + cam[:3, 3]
-        k = k_matrices[j]
-        h, w = depths[j].shape
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = k[0, 0] * p[:, 0] / p[:, 2] + k[0, 2]
-            v = k[1, 1] * p[:, 1] / p[:, 2] + k[1, 2]
-        ok = (p[:, 2] > 0) & (u >= half) & (u <= w - 1 - half) & (v >= half) & (v <= h - 1 - half)
-        seen = np.zeros(len(p), np.float32)
-        seen[ok] = depths[j][np.rint(v[ok]).astype(np.int64), np.rint(u[ok]).astype(np.int64)]
-        ok &= ~((seen > 0) & (seen < 0.97 * p[:, 2]))
-        to_j = view.env_from_cam[:3, 3] - points_env
-        to_j /= np.maximum(np.linalg.norm(to_j, axis=1, keepdims=True), 1e-12)
-        sin = np.linalg.norm(np.cross(to_i, to_j), axis=1)
-        ok &= sin >= np.sin(np.radians(min_angle_deg))
-        weight[j] = np.where(ok, np.minimum(sin / sin_full, 1.0), 0.0)
+    for j in range(len(views)):
+        if j != i:
+            weight[j] = _coverage_weight(
+                views[i], views[j], points_env, depths[j], k_matrices[j], choice
+            )
     chosen: list[int] = []
     covered = np.zeros(len(points_env), np.int32)
-    for _ in range(count):
+    for _ in range(choice.count):
         gain = (weight * (covered < 2)).sum(axis=1)
         gain[chosen] = -1.0
         j = int(np.argmax(gain))
@@ -639,6 +673,38 @@ def coverage_views(
         chosen.append(j)
         covered += weight[j] > 0
     return tuple(chosen)
+
+
+def _coverage_weight(
+    view_i: DenseView,
+    view: DenseView,
+    points_env: FloatArray,
+    depth: F32,
+    k: FloatArray,
+    choice: ViewChoice,
+) -> FloatArray:
+    """(N,) weight of ``view`` (grid K ``k``, depth map ``depth``) for verifying view_i's
+    (N, 3) env points: 0 where it does not see them (see :func:`coverage_views`)."""
+    centre_i = view_i.env_from_cam[:3, 3]
+    to_i = centre_i - points_env
+    to_i /= np.maximum(np.linalg.norm(to_i, axis=1, keepdims=True), 1e-12)
+    half = choice.window // 2
+    sin_full = np.sin(np.radians(choice.full_angle_deg))
+    cam = view.cam_from_env
+    p = points_env @ cam[:3, :3].T + cam[:3, 3]
+    h, w = depth.shape
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = k[0, 0] * p[:, 0] / p[:, 2] + k[0, 2]
+        v = k[1, 1] * p[:, 1] / p[:, 2] + k[1, 2]
+    ok = (p[:, 2] > 0) & (u >= half) & (u <= w - 1 - half) & (v >= half) & (v <= h - 1 - half)
+    seen = np.zeros(len(p), np.float32)
+    seen[ok] = depth[np.rint(v[ok]).astype(np.int64), np.rint(u[ok]).astype(np.int64)]
+    ok &= ~((seen > 0) & (seen < 0.97 * p[:, 2]))
+    to_j = view.env_from_cam[:3, 3] - points_env
+    to_j /= np.maximum(np.linalg.norm(to_j, axis=1, keepdims=True), 1e-12)
+    sin = np.linalg.norm(np.cross(to_i, to_j), axis=1)
+    ok &= sin >= np.sin(np.radians(choice.min_angle_deg))
+    return np.asarray(np.where(ok, np.minimum(sin / sin_full, 1.0), 0.0), np.float64)
 
 
 @dataclass(frozen=True)
@@ -651,7 +717,7 @@ class PlaneFill:
     their own far SGBM depth because it agreed with it (0 elsewhere), for when that depth
     fails the consistency check (:func:`~workers.pipeline.reconstruct.mvs.consistent_points_split`);
     ``checked_by``: the views its plane depths were verified against; ``stats``: the
-    planes, pixels filled, far depths replaced or snapped.
+    planes, pixels filled, far depths replaced.
     """
 
     depths: list[F32]
@@ -659,6 +725,27 @@ class PlaneFill:
     fallback: list[F32]
     checked_by: list[tuple[int, ...]]
     stats: dict[str, Any]
+
+    def verified(self) -> VerifiedDepths:
+        """The plane depths as the consistency check's verified depths."""
+        return VerifiedDepths(self.from_plane, self.checked_by, self.fallback)
+
+
+@dataclass(frozen=True)
+class _ViewFill:
+    """One view's share of a :class:`PlaneFill`, with its pixel counts."""
+
+    depth: F32
+    from_plane: NDArray[np.bool_]
+    fallback: F32
+    checked_by: tuple[int, ...]
+    filled: int
+    replaced: int
+
+    @classmethod
+    def unchanged(cls, depth: F32, checked_by: tuple[int, ...]) -> _ViewFill:
+        no_fallback = np.zeros(depth.shape, np.float32)
+        return cls(depth.copy(), np.zeros(depth.shape, np.bool_), no_fallback, checked_by, 0, 0)
 
 
 def fill_depths(
@@ -683,9 +770,8 @@ def fill_depths(
     by ≥ ``planar_ncc_margin``, the reference window has texture (std ≥ 1 grey level), and
     no own SGBM depth nearer than the plane by > 5 % lies within ``planar_ncc_window``
     pixels. A far SGBM depth that disagrees with an accepted plane depth by more than
-    ``far_consistency_rel_tol`` is replaced; one that agrees is snapped to the plane only
-    with ``planar_snap`` (otherwise the plane depth is its ``fallback``). Raises ShapeError
-    on mismatched inputs.
+    ``far_consistency_rel_tol`` is replaced; one that agrees is kept, the plane depth its
+    ``fallback``. Raises ShapeError on mismatched inputs.
     """
     _check_views(views, depths)
     n = len(views)
@@ -693,122 +779,185 @@ def fill_depths(
         "planes": [p.to_json() for p in planes],
         "pixels_filled": 0,
         "far_pixels_replaced": 0,
-        "far_pixels_snapped": 0,
     }
     if not planes:
-        return PlaneFill(
-            [d.copy() for d in depths],
-            [np.zeros(d.shape, np.bool_) for d in depths],
-            [np.zeros(d.shape, np.float32) for d in depths],
-            [() for _ in views],
-            stats,
-        )
-    scale = options.planar_ncc_scale
-    win = options.planar_ncc_window
-    grays = [_gray(v, scale) for v in views]
-    ks = [_scaled_k(v.k_matrix, scale) for v in views]
-    small_depths = [
-        np.asarray(
-            cv2.resize(d, (g.shape[1], g.shape[0]), interpolation=cv2.INTER_NEAREST), np.float32
-        )
-        for d, g in zip(depths, grays, strict=True)
-    ]
-    check: list[tuple[int, ...]] = [() for _ in views]
-    eps = options.planar_offset_rel
-    margin = options.planar_ncc_margin
-    out: list[F32] = []
-    from_plane: list[NDArray[np.bool_]] = []
-    fallback: list[F32] = []
-    for i, view in enumerate(views):
-        w, h = view.size
-        depth = depths[i]
-        g_ref = grays[i]
-        hs, ws = g_ref.shape
-        plane_s, label_s = plane_depths(view, planes, k_matrix=ks[i], size=(ws, hs))
-        own_s = small_depths[i]
-        cand_s = (plane_s >= options.planar_min_depth_m) & (
-            (own_s <= 0) | (own_s >= options.far_min_depth_m)
-        )
-        if cand_s.any():
-            check[i] = _choose_views(i, views, plane_s, cand_s, ks, small_depths, options)
-        if not cand_s.any() or not check[i]:
-            out.append(depth.copy())
-            from_plane.append(np.zeros(depth.shape, np.bool_))
-            fallback.append(np.zeros(depth.shape, np.float32))
+        fills = [_ViewFill.unchanged(d, ()) for d in depths]
+    else:
+        scaled = _scaled_views(views, depths, options.planar_ncc_scale)
+        fills = []
+        for i in range(n):
+            fills.append(_fill_view(i, views, depths[i], planes, scaled, options))
             progress("planar", (i + 1) / n)
-            continue
-        # a nearer SGBM depth close by: an occluder's edge, where the plane would bleed
-        nearer = (own_s > 0) & (own_s < options.far_min_depth_m) & (own_s < 0.95 * plane_s)
-        nearer = cv2.dilate(nearer.astype(np.uint8), np.ones((win, win), np.uint8)) > 0
-        mean_r = _box(g_ref, win)
-        var_r = _box(g_ref * g_ref, win) - mean_r * mean_r
-        textured = var_r >= 1.0
-        rays = _rays_cam(ks[i], ws, hs)
-        kernel = np.ones((win, win), np.uint8)
-        scores = np.zeros((3, hs, ws), np.float32)
-        used = np.zeros((hs, ws), np.int32)
-        for j in check[i]:
-            # the point at depth z on the ray r of view i is a + z M r in view j's camera
-            j_from_i = views[j].cam_from_env @ view.env_from_cam
-            a = j_from_i[:3, 3]
-            m_rays = [_linear(rays, row) for row in j_from_i[:3, :3]]
-            kj = ks[j]
-            hj, wj = grays[j].shape
-            valid_j = np.zeros((hs, ws), np.bool_)
-            for k, factor in enumerate((1.0, 1.0 - eps, 1.0 + eps)):
-                zf = plane_s * np.float32(factor)
-                qx, qy, qz = (np.float32(a[c]) + zf * m_rays[c] for c in range(3))
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    mx = np.float32(kj[0, 0]) * qx / qz + np.float32(kj[0, 2])
-                    my = np.float32(kj[1, 1]) * qy / qz + np.float32(kj[1, 2])
-                inside = (qz > 0) & (mx >= 0) & (mx <= wj - 1) & (my >= 0) & (my <= hj - 1)
-                mx[~inside] = -1.0
-                my[~inside] = -1.0
-                if k == 0:
-                    seen = cv2.remap(small_depths[j], mx, my, cv2.INTER_NEAREST, borderValue=0.0)
-                    occluded = (seen > 0) & (seen < 0.97 * qz)
-                    full = cv2.erode(inside.astype(np.uint8), kernel) > 0
-                    valid_j = full & ~occluded & (plane_s > 0)
-                    used += valid_j
-                warped = np.asarray(
-                    cv2.remap(grays[j], mx, my, cv2.INTER_LINEAR, borderValue=0.0), np.float32
-                )
-                mean_w = _box(warped, win)
-                var_w = _box(warped * warped, win) - mean_w * mean_w
-                cov = _box(g_ref * warped, win) - mean_r * mean_w
-                ncc = cov / np.sqrt(np.maximum(var_r * var_w, 1e-6))
-                scores[k] += np.where(valid_j, ncc, 0.0).astype(np.float32)
-        need = min(options.planar_min_views, len(check[i]))
+    for f in fills:
+        stats["pixels_filled"] += f.filled
+        stats["far_pixels_replaced"] += f.replaced
+    return PlaneFill(
+        [f.depth for f in fills],
+        [f.from_plane for f in fills],
+        [f.fallback for f in fills],
+        [f.checked_by for f in fills],
+        stats,
+    )
+
+
+def _fill_view(
+    i: int,
+    views: list[DenseView],
+    depth: F32,
+    planes: list[Plane],
+    scaled: _ScaledViews,
+    options: ReconstructOptions,
+) -> _ViewFill:
+    """View ``i``'s (H, W) ``depth`` with its verified plane depths laid in (see
+    :func:`fill_depths`)."""
+    cands = _candidates(i, views[i], planes, scaled, options)
+    checked_by = _choose_views(cands, views, scaled, options) if cands.mask.any() else ()
+    if not cands.mask.any() or not checked_by:
+        return _ViewFill.unchanged(depth, checked_by)
+    accept_s = _accepted(cands, views, scaled, checked_by, options)
+    label_acc = np.where(accept_s, cands.label, -1).astype(np.int16)
+    return _lay_in(views[i], depth, planes, label_acc, checked_by, options)
+
+
+@dataclass(frozen=True)
+class _WindowStats:
+    """A grey image (h, w) float32 and its ZNCC-window mean and variance."""
+
+    gray: F32
+    mean: F32
+    var: F32
+
+
+def _accepted(
+    cands: _Candidates,
+    views: list[DenseView],
+    scaled: _ScaledViews,
+    checked_by: tuple[int, ...],
+    options: ReconstructOptions,
+) -> NDArray[np.bool_]:
+    """(h, w) bool: the candidate pixels whose plane depth the views ``checked_by`` verify
+    photometrically (the acceptance rule of :func:`fill_depths`)."""
+    win = options.planar_ncc_window
+    plane_s = cands.depth
+    own_s = scaled.depths[cands.index]
+    # a nearer SGBM depth close by: an occluder's edge, where the plane would bleed
+    nearer = (own_s > 0) & (own_s < options.far_min_depth_m) & (own_s < 0.95 * plane_s)
+    nearer = cv2.dilate(nearer.astype(np.uint8), np.ones((win, win), np.uint8)) > 0
+    g_ref = scaled.grays[cands.index]
+    mean_r = _box(g_ref, win)
+    var_r = _box(g_ref * g_ref, win) - mean_r * mean_r
+    ref = _WindowStats(g_ref, mean_r, var_r)
+    textured = var_r >= 1.0
+    hs, ws = g_ref.shape
+    rays = _rays_cam(scaled.k_matrices[cands.index], ws, hs)
+    scores = np.zeros((3, hs, ws), np.float32)
+    used = np.zeros((hs, ws), np.int32)
+    for j in checked_by:
+        pair = _pair_scores(cands, views, j, ref, rays, scaled, options)
+        used += pair.valid
+        scores += pair.ncc
+    need = min(options.planar_min_views, len(checked_by))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_scores = scores / np.maximum(used, 1)
+    accept_s = (
+        (used >= need)
+        & textured
+        & ~nearer
+        & (mean_scores[0] >= options.planar_min_ncc)
+        & (mean_scores[0] >= np.maximum(mean_scores[1], mean_scores[2]) + options.planar_ncc_margin)
+    )
+    return np.asarray(accept_s & cands.mask)
+
+
+@dataclass(frozen=True)
+class _PairScores:
+    """One verifying view's (3, h, w) float32 ZNCC at the plane depth and at depths
+    × (1 ∓ ``planar_offset_rel``) (0 where it does not count), and (h, w) bool where it
+    counts (sees the plane point unoccluded, whole window inside its image)."""
+
+    ncc: F32
+    valid: NDArray[np.bool_]
+
+
+def _pair_scores(
+    cands: _Candidates,
+    views: list[DenseView],
+    j: int,
+    ref: _WindowStats,
+    rays: NDArray[np.float32],
+    scaled: _ScaledViews,
+    options: ReconstructOptions,
+) -> _PairScores:
+    """ZNCC of view ``cands.index``'s reference windows against view j, sampled through the
+    candidate plane points and through the points ± ``planar_offset_rel`` along the ray."""
+    win = options.planar_ncc_window
+    eps = options.planar_offset_rel
+    plane_s = cands.depth
+    hs, ws = plane_s.shape
+    # the point at depth z on the ray r of view i is a + z M r in view j's camera
+    j_from_i = views[j].cam_from_env @ views[cands.index].env_from_cam
+    a = j_from_i[:3, 3]
+    m_rays = [_linear(rays, row) for row in j_from_i[:3, :3]]
+    kj = scaled.k_matrices[j]
+    hj, wj = scaled.grays[j].shape
+    kernel = np.ones((win, win), np.uint8)
+    valid_j = np.zeros((hs, ws), np.bool_)
+    ncc_all = np.zeros((3, hs, ws), np.float32)
+    for k, factor in enumerate((1.0, 1.0 - eps, 1.0 + eps)):
+        zf = plane_s * np.float32(factor)
+        qx, qy, qz = (np.float32(a[c]) + zf * m_rays[c] for c in range(3))
         with np.errstate(divide="ignore", invalid="ignore"):
-            mean_scores = scores / np.maximum(used, 1)
-        accept_s = (
-            (used >= need)
-            & textured
-            & ~nearer
-            & (mean_scores[0] >= options.planar_min_ncc)
-            & (mean_scores[0] >= np.maximum(mean_scores[1], mean_scores[2]) + margin)
+            mx = np.float32(kj[0, 0]) * qx / qz + np.float32(kj[0, 2])
+            my = np.float32(kj[1, 1]) * qy / qz + np.float32(kj[1, 2])
+        inside = (qz > 0) & (mx >= 0) & (mx <= wj - 1) & (my >= 0) & (my <= hj - 1)
+        mx[~inside] = -1.0
+        my[~inside] = -1.0
+        if k == 0:
+            seen = cv2.remap(scaled.depths[j], mx, my, cv2.INTER_NEAREST, borderValue=0.0)
+            occluded = (seen > 0) & (seen < 0.97 * qz)
+            full = cv2.erode(inside.astype(np.uint8), kernel) > 0
+            valid_j = full & ~occluded & (plane_s > 0)
+        warped = np.asarray(
+            cv2.remap(scaled.grays[j], mx, my, cv2.INTER_LINEAR, borderValue=0.0), np.float32
         )
-        accept_s &= cand_s
-        label_acc = np.where(accept_s, label_s, -1).astype(np.int16)
-        label = np.asarray(cv2.resize(label_acc, (w, h), interpolation=cv2.INTER_NEAREST), np.int16)
-        plane_full = _label_depths(view, planes, label)
-        accept = (plane_full >= max(options.planar_min_depth_m, 1e-6)) & (
-            (depth <= 0) | (depth >= options.far_min_depth_m)
-        )
-        empty = accept & (depth <= 0)
-        far = accept & (depth > 0)
-        agree = far & (np.abs(depth - plane_full) <= options.far_consistency_rel_tol * plane_full)
-        replace = far & ~agree
-        new = depth.copy()
-        new[empty | replace] = plane_full[empty | replace]
-        if options.planar_snap:
-            new[agree] = plane_full[agree]
-        stats["pixels_filled"] += int(empty.sum())
-        stats["far_pixels_replaced"] += int(replace.sum())
-        stats["far_pixels_snapped"] += int(agree.sum()) if options.planar_snap else 0
-        out.append(new.astype(np.float32))
-        from_plane.append(empty | replace | (agree & options.planar_snap))
-        keep_sgbm = agree & (not options.planar_snap)
-        fallback.append(np.where(keep_sgbm, plane_full, 0.0).astype(np.float32))
-        progress("planar", (i + 1) / n)
-    return PlaneFill(out, from_plane, fallback, check, stats)
+        ncc_all[k] = np.where(valid_j, _zncc(ref, warped, win), 0.0).astype(np.float32)
+    return _PairScores(ncc_all, valid_j)
+
+
+def _zncc(ref: _WindowStats, warped: F32, win: int) -> F32:
+    """(h, w) ZNCC of ``win``² windows of the reference and a warped (h, w) grey image."""
+    mean_w = _box(warped, win)
+    var_w = _box(warped * warped, win) - mean_w * mean_w
+    cov = _box(ref.gray * warped, win) - ref.mean * mean_w
+    return np.asarray(cov / np.sqrt(np.maximum(ref.var * var_w, 1e-6)))
+
+
+def _lay_in(
+    view: DenseView,
+    depth: F32,
+    planes: list[Plane],
+    label_acc: NDArray[np.int16],
+    checked_by: tuple[int, ...],
+    options: ReconstructOptions,
+) -> _ViewFill:
+    """The view's (H, W) ``depth`` with the plane depths of the accepted (h, w) plane labels
+    ``label_acc`` (−1: none) laid in at full resolution: into pixels with no depth, and over
+    far depths that disagree by more than ``far_consistency_rel_tol``; far depths that
+    agree are kept, the plane depth their fallback."""
+    w, h = view.size
+    label = np.asarray(cv2.resize(label_acc, (w, h), interpolation=cv2.INTER_NEAREST), np.int16)
+    plane_full = _label_depths(view, planes, label)
+    accept = (plane_full >= max(options.planar_min_depth_m, 1e-6)) & (
+        (depth <= 0) | (depth >= options.far_min_depth_m)
+    )
+    empty = accept & (depth <= 0)
+    far = accept & (depth > 0)
+    agree = far & (np.abs(depth - plane_full) <= options.far_consistency_rel_tol * plane_full)
+    replace = far & ~agree
+    new = depth.copy()
+    new[empty | replace] = plane_full[empty | replace]
+    fallback = np.where(agree, plane_full, 0.0).astype(np.float32)
+    filled, replaced = int(empty.sum()), int(replace.sum())
+    return _ViewFill(
+        new.astype(np.float32), empty | replace, fallback, checked_by, filled, replaced
+    )

@@ -10,17 +10,18 @@ from collections.abc import Sequence
 import numpy as np
 import pytest
 
-from tests.workers.pipeline.test_compare_scene import (
+from tests.workers.pipeline.compare_scene import (
+    BASE,
+    CAMS,
     CLASSES,
     DIAMETERS,
+    TWIN,
     Counter,
-    Obj,
     bin_,
     capture,
     cart,
     crate,
-    ring_cameras,
-    twin_of,
+    run,
 )
 from workers.pipeline.compare import (
     PRESETS,
@@ -35,9 +36,6 @@ from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.errors import Cancelled, InputError
 from workers.pipeline.geometry import make_rigid
 
-CAMS = ring_cameras()
-BASE = [crate(-0.8, 0.5), bin_(0.7, -0.6)]
-TWIN = twin_of(BASE, ["crate-1", "bin-1"])
 # a cluster's centroid is the mean of its *changed* points (no floor-level rim, no
 # bottom face), so it sits ~1–6 cm off the box centre; 8 cm is a safe bound at 8 mm spacing
 CENTROID_TOL = 0.08
@@ -46,16 +44,6 @@ CENTROID_TOL = 0.08
 @pytest.fixture(scope="module")
 def before() -> CaptureData:
     return capture(BASE, CAMS, seed=1)
-
-
-def run(
-    before: CaptureData,
-    objs: Sequence[Obj],
-    twin: Sequence[TwinInstance] = TWIN,
-    options: CompareOptions = PRESETS["default"],
-) -> CompareResult:
-    after = capture(objs, CAMS, seed=2)
-    return compare_snapshots(before, after, twin, CLASSES, DIAMETERS, options, new_id=Counter())
 
 
 def identified(res: CompareResult) -> list[tuple[str, str | None, str | None]]:

@@ -5,8 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.workers.pipeline.test_compare_changes import BASE, CAMS, TWIN, run
-from tests.workers.pipeline.test_compare_scene import CLASSES, DIAMETERS, Obj, capture, crate
+from tests.workers.pipeline.compare_scene import (
+    BASE,
+    CAMS,
+    CLASSES,
+    DIAMETERS,
+    TWIN,
+    Obj,
+    capture,
+    crate,
+    run,
+)
 from workers.pipeline.compare import PRESETS
 from workers.pipeline.compare.clusters import (
     _near_voxels,

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tests.workers.pipeline.test_compare_scene import (
+from tests.workers.pipeline.compare_scene import (
     CLASSES,
     DIAMETERS,
     Counter,

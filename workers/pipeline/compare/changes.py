@@ -18,6 +18,7 @@ objects get a new one from ``new_id``.
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -48,39 +49,57 @@ def _dist(a: Sequence[FloatArray], b: Sequence[FloatArray]) -> FloatArray:
     return np.asarray(np.linalg.norm(np.asarray(a)[:, None, :] - np.asarray(b)[None, :, :], axis=2))
 
 
-def classify_changes(
-    clusters: Sequence[ClusterResult],
+@dataclass(frozen=True)
+class _Identified:
+    """The identified clusters of each side and, for removed cluster i, the twin instance
+    it closes (``closes[i]``, absent when none of its class is near enough)."""
+
+    added: list[ClusterResult]
+    removed: list[ClusterResult]
+    closes: dict[int, TwinInstance]
+
+
+@dataclass(frozen=True)
+class _Paired:
+    """Changes made from pairs, and the indices into ``_Identified.removed`` / ``.added``
+    of the clusters they used."""
+
+    changes: list[Change]
+    removed_used: frozenset[int]
+    added_used: frozenset[int]
+
+
+def _diameter(class_diameters_m: Mapping[str, float], name: str | None) -> float:
+    return float(class_diameters_m.get(name or "", 0.0))
+
+
+def _close_instances(
+    removed: Sequence[ClusterResult],
     twin: Sequence[TwinInstance],
     class_diameters_m: Mapping[str, float],
     options: CompareOptions,
-    new_id: Callable[[], str],
-    not_changes: Collection[int] = (),
-) -> list[Change]:
-    """Changes from identified clusters and the twin state (see module docstring).
-    ``not_changes``: ids of unidentified clusters without evidence of a change (kept in
-    the clusters table, not reported)."""
-
-    def diameter(name: str | None) -> float:
-        return float(class_diameters_m.get(name or "", 0.0))
-
-    added = [c for c in clusters if c.side == "added" and c.object_name is not None]
-    removed = [c for c in clusters if c.side == "removed" and c.object_name is not None]
-
-    # 1. removed cluster -> twin instance of its class
+) -> dict[int, TwinInstance]:
+    """Step 1: each removed cluster → the nearest twin instance of its class within
+    ``max(instance_match_min, instance_match_factor × diameter)`` metres."""
     closes: dict[int, TwinInstance] = {}
     for name in sorted({c.object_name for c in removed if c.object_name}):
         rs = [i for i, c in enumerate(removed) if c.object_name == name]
         ts = [t for t in twin if t.object_name == name]
         cost = _dist([removed[i].centroid for i in rs], [t.centroid for t in ts])
-        lim = max(options.instance_match_min, options.instance_match_factor * diameter(name))
+        diameter = _diameter(class_diameters_m, name)
+        lim = max(options.instance_match_min, options.instance_match_factor * diameter)
         for r, t in _assign(cost, np.full(cost.shape, lim)):
             closes[rs[r]] = ts[t]
+    return closes
 
+
+def _moved(found: _Identified, options: CompareOptions, new_id: Callable[[], str]) -> _Paired:
+    """Step 2: a removed and an added cluster of one class ≤ ``moved_max_distance`` apart;
+    the instance keeps its id."""
+    added, removed = found.added, found.removed
     changes: list[Change] = []
     used_r: set[int] = set()
     used_a: set[int] = set()
-
-    # 2. moved: same class
     for name in sorted({c.object_name for c in added if c.object_name}):
         rs = [i for i, c in enumerate(removed) if c.object_name == name]
         as_ = [i for i, c in enumerate(added) if c.object_name == name]
@@ -89,7 +108,7 @@ def classify_changes(
             ri, ai = rs[r], as_[a]
             used_r.add(ri)
             used_a.add(ai)
-            inst = closes.get(ri)
+            inst = found.closes.get(ri)
             changes.append(
                 Change(
                     id=new_id(),
@@ -101,16 +120,30 @@ def classify_changes(
                     previous_env_from_object=inst.env_from_object if inst else None,
                 )
             )
+    return _Paired(changes, frozenset(used_r), frozenset(used_a))
 
-    # 3. swapped: different classes at about the same place
-    rs = [i for i in range(len(removed)) if i not in used_r]
-    as_ = [i for i in range(len(added)) if i not in used_a]
+
+def _swapped(
+    found: _Identified,
+    moved: _Paired,
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions,
+    new_id: Callable[[], str],
+) -> _Paired:
+    """Step 3: a leftover removed and a leftover added cluster of different classes whose
+    centroids are < ``swap_distance_factor × max(diameters)`` apart."""
+    added, removed = found.added, found.removed
+    rs = [i for i in range(len(removed)) if i not in moved.removed_used]
+    as_ = [i for i in range(len(added)) if i not in moved.added_used]
     cost = _dist([removed[i].centroid for i in rs], [added[i].centroid for i in as_])
     limit = np.array(
         [
             [
                 options.swap_distance_factor
-                * max(diameter(removed[r].object_name), diameter(added[a].object_name))
+                * max(
+                    _diameter(class_diameters_m, removed[r].object_name),
+                    _diameter(class_diameters_m, added[a].object_name),
+                )
                 if removed[r].object_name != added[a].object_name
                 else -1.0
                 for a in as_
@@ -118,11 +151,14 @@ def classify_changes(
             for r in rs
         ]
     ).reshape(len(rs), len(as_))
+    changes: list[Change] = []
+    used_r: set[int] = set()
+    used_a: set[int] = set()
     for r, a in _assign(cost, limit):
         ri, ai = rs[r], as_[a]
         used_r.add(ri)
         used_a.add(ai)
-        inst = closes.get(ri)
+        inst = found.closes.get(ri)
         changes.append(
             Change(
                 id=new_id(),
@@ -136,12 +172,19 @@ def classify_changes(
                 replaced_instance_id=inst.instance_id if inst else None,
             )
         )
+    return _Paired(changes, frozenset(used_r), frozenset(used_a))
 
-    # 4. leftovers
-    for ri, c in enumerate(removed):
+
+def _leftovers(
+    found: _Identified, used_r: Collection[int], used_a: Collection[int], new_id: Callable[[], str]
+) -> list[Change]:
+    """Step 4: the unpaired removed clusters (closing their instance), then the unpaired
+    added ones (a new instance id)."""
+    changes: list[Change] = []
+    for ri, c in enumerate(found.removed):
         if ri in used_r:
             continue
-        inst = closes.get(ri)
+        inst = found.closes.get(ri)
         changes.append(
             Change(
                 id=new_id(),
@@ -152,7 +195,7 @@ def classify_changes(
                 previous_env_from_object=inst.env_from_object if inst else None,
             )
         )
-    for ai, c in enumerate(added):
+    for ai, c in enumerate(found.added):
         if ai in used_a:
             continue
         changes.append(
@@ -164,18 +207,51 @@ def classify_changes(
                 cluster=c,
             )
         )
+    return changes
 
-    # 5. unidentified: reported, never dropped, once they are large enough to be an object
-    # (identified clusters have the detector's evidence; an unidentified speck is noise)
-    for c in clusters:
+
+def _unidentified(
+    clusters: Sequence[ClusterResult],
+    options: CompareOptions,
+    not_changes: Collection[int],
+    new_id: Callable[[], str],
+) -> list[Change]:
+    """Step 5: unidentified clusters are reported, never dropped, once they are large
+    enough to be an object (identified clusters have the detector's evidence; an
+    unidentified speck is noise)."""
+    return [
+        Change(id=new_id(), type="unidentified", object_name=None, instance_id=None, cluster=c)
+        for c in clusters
         if (
             c.object_name is None
             and c.n_evidence_points >= options.unidentified_min_points
             and c.id not in not_changes
-        ):
-            changes.append(
-                Change(
-                    id=new_id(), type="unidentified", object_name=None, instance_id=None, cluster=c
-                )
-            )
-    return changes
+        )
+    ]
+
+
+def classify_changes(
+    clusters: Sequence[ClusterResult],
+    twin: Sequence[TwinInstance],
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions,
+    new_id: Callable[[], str],
+    not_changes: Collection[int] = (),
+) -> list[Change]:
+    """Changes from identified clusters and the twin state (see module docstring).
+    ``not_changes``: ids of unidentified clusters without evidence of a change (kept in
+    the clusters table, not reported)."""
+    added = [c for c in clusters if c.side == "added" and c.object_name is not None]
+    removed = [c for c in clusters if c.side == "removed" and c.object_name is not None]
+    closes = _close_instances(removed, twin, class_diameters_m, options)
+    found = _Identified(added=added, removed=removed, closes=closes)
+    moved = _moved(found, options, new_id)
+    swapped = _swapped(found, moved, class_diameters_m, options, new_id)
+    used_r = moved.removed_used | swapped.removed_used
+    used_a = moved.added_used | swapped.added_used
+    return [
+        *moved.changes,
+        *swapped.changes,
+        *_leftovers(found, used_r, used_a, new_id),
+        *_unidentified(clusters, options, not_changes, new_id),
+    ]

@@ -1,7 +1,9 @@
 """Options of the compare stage: a frozen dataclass with named presets.
 
 The job row stores ``(preset name, overrides)``; :func:`options_from_json` rebuilds the
-exact options, and :meth:`CompareOptions.to_json` writes them back.
+exact options, and :meth:`CompareOptions.to_json` writes them back. Each option's comment
+says what it is, its unit and when to change it; why each default is what it is (the
+measurements) is in docs/decisions/compare.md.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from typing import Any, Literal
 from workers.pipeline.errors import InputError
 
 ThresholdKind = Literal["mean_std", "fixed", "lod"]
+StatsRegion = Literal["overlap", "all"]
 
 
 @dataclass(frozen=True)
@@ -29,12 +32,19 @@ class ThresholdSpec:
       to the nearest sample is sqrt(ln 20 / ln 2) ≈ 2.08 × the median NN spacing.
     """
 
+    # "mean_std", "fixed" or "lod" (see above)
     kind: ThresholdKind = "mean_std"
+    # mean_std: standard deviations above the mean; lower to catch smaller changes
     k: float = 1.0
+    # fixed: the threshold, metres
     distance: float = 0.02
+    # lod: normal quantile of the noise term (1.96: 95 %)
     z: float = 1.96
+    # lod: sampling gap as a multiple of the reference's median spacing
     spacing_factor: float = 2.0
+    # lod: registration error between the captures, metres (None: from their residuals)
     registration: float | None = None
+    # lod: neighbours of the local plane that roughness is measured on
     neighbours: int = 16
 
     def __post_init__(self) -> None:
@@ -76,93 +86,93 @@ class ThresholdSpec:
 class CompareOptions:
     """Every knob of the compare stage. Lengths in metres, image sizes in pixels."""
 
+    # thresholds
+    # how each side's change threshold on C2C distances is chosen (see ThresholdSpec)
     threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
-    # distance statistics over "overlap" (points where the other capture looked; a seeded
-    # sample of ≤ stats_sample points) or "all" points (CloudCompare's figures)
-    stats_region: Literal["overlap", "all"] = "overlap"
+    # distance statistics over "overlap" (points the other capture looked at) or "all" points
+    stats_region: StatsRegion = "overlap"
+    # at most this many points (seeded sample) for the overlap test of the statistics
     stats_sample: int = 200_000
-    # spacing estimate and clustering (DBSCAN over a radius graph)
+    # clustering
+    # points (seeded sample) the median spacing and roughness are estimated from
     spacing_sample: int = 20_000
+    # DBSCAN radius, × the median point spacing; raise when objects break into many clusters
     cluster_radius_factor: float = 3.0
+    # DBSCAN core points need this many neighbours within the radius
     cluster_min_samples: int = 4
+    # a cluster needs at least this many points; lower to keep small objects
     cluster_min_points: int = 30
+    # the largest clusters kept per side
     max_clusters: int = 100
-    # hysteresis growth: clusters found at ``threshold`` take the connected points above
-    # ``grow_threshold`` (capped at ``threshold``; None: no growth), e.g. an object's base
-    # close to the old floor, or a low part of it (an L-bracket's foot). Reach: a path of at
-    # most grow_max_diameters × the largest library diameter (no point of an object lies
-    # further than its diameter from another); measured on the demo scene, a reach of
-    # 1.5 × threshold (6 cm) left a removed L-bracket's foot out and it went unidentified
+    # hysteresis growth
+    # lower threshold clusters grow through (capped at threshold); None: no growth
     grow_threshold: ThresholdSpec | None = field(default_factory=lambda: ThresholdSpec(kind="lod"))
+    # growth reach along connected points, × the largest library diameter
     grow_max_diameters: float = 1.0
-    # base growth (after hysteresis growth, only with it): a cluster takes the points
-    # beneath its points, in columns of base_radius_factor × spacing, down to
-    # base_band_factor × the side's grow threshold (0: off). Measured on the bench's removed
-    # can (grow threshold 8 mm): without it its box lacked the lowest 3.6 px (median, 40
-    # views); columns of 1 × spacing took a ring of floor and widened the box by 1.3 px;
-    # 0.5 × spacing with a 2 × band: every edge within 1 px, mean IoU 0.826 → 0.850
+    # base growth
+    # depth of the band beneath a cluster it takes, × the side's grow threshold (0: off)
     base_band_factor: float = 2.0
+    # width of the columns base growth looks down, × the median point spacing
     base_radius_factor: float = 0.5
-    # base growth only beneath the cluster's walls (its points with a point of it above them,
-    # in the skirt-pruning column: skirt_radius_factor × spacing up to skirt_rise_m), not
-    # beneath the smear sloping out from its foot, which has only floor below it. Measured on
-    # the bench's moved mustard bottle, clean detector, planar prior on, same
-    # reconstructions: 230 of the added cluster's 636 base points lay > 6 mm outside the
-    # bottle, all on the floor, and its boxes were 2.0 px too wide left and right (median,
-    # 40 views, against the true surface projected); with this 125 of 502, 1.4 px, metric
-    # 0.796 -> 0.817 (its removed cluster 0.829 -> 0.832); hammer added 0.863 -> 0.875,
-    # swapped 0.833 -> 0.848; 'multiple' +0.004..+0.011; the cans -0.003 (their boxes'
-    # bottom edge 0.5 px higher: some of a can's lowest rim hangs from points with nothing
-    # of the can above them)
+    # grow the base only beneath the cluster's walls, not beneath the smear around its foot
     base_beneath_walls: bool = True
-    # skirt pruning (after hysteresis growth, before base growth, only with growth): a grown
-    # point with no point of its cluster above it (columns of skirt_radius_factor × spacing,
-    # up to skirt_rise_m) within skirt_width_factor × spacing of the cluster's seeds is the
-    # floor that stereo smears around an object's foot, and is dropped (0: off). Measured on
-    # the bench's moved mustard bottle (same reconstructions): 345 of the 1008 grown points
-    # lay > 6 mm off the object, and its boxes were 2.3 px too wide on the left, 1.4 px on
-    # the right (median, 40 views); with 4 / 0.75: metric 0.803 -> 0.823, the two cans
-    # -0.002 / 0, the hammer +0.001 (columns of 0.5 × spacing: mustard 0.823 but the cans
-    # lost their lowest rim, -0.004)
+    # skirt pruning
+    # grown points with nothing of the cluster above them, within this × spacing of the
+    # seeds, are floor smeared around the foot and dropped (0: off)
     skirt_width_factor: float = 4.0
+    # width of the columns skirt pruning looks up (and walls are found in), × spacing
     skirt_radius_factor: float = 0.75
+    # how far up a column is searched for the cluster's own points, metres
     skirt_rise_m: float = 0.03
-    # visibility (z-buffer by point splatting at reduced resolution)
+    # visibility
+    # test occlusion with z-buffers of each capture's own cloud; False: in image = visible
     use_visibility: bool = True
+    # long side of the z-buffers, pixels; raise for finer occlusion at more memory and time
     zbuffer_max_side: int = 256
+    # at most this many points (seeded sample) splatted into the z-buffers
     zbuffer_max_points: int = 400_000
+    # splat radius of each point in the z-buffer, pixels; raise for sparse clouds
     zbuffer_fill_px: int = 1
+    # a point is visible within this depth of the z-buffer, metres (plus depth_tolerance_px)
     depth_tolerance_m: float = 0.02
+    # extra depth tolerance: the depth span of this many pixels at the point's depth
     depth_tolerance_px: float = 2.0
-    # a cluster's box in an image spans the [p, 100 − p] percentiles of its visible pixels;
-    # measured on the bench scenes (YCB, boxes 30–140 px): p = 2 lost 3–6 % of mean IoU to
-    # the trimmed edges, p = 0 let stray points widen it, p = 0.5 was best
+    # a cluster's box spans the [p, 100 − p] percentiles of its visible pixels, percent
     box_percentile: float = 0.5
+    # a cluster is visible in an image when at least this many of its points are
     min_visible_points: int = 8
-    # "not seen ≠ removed": a candidate counts only if ≥ min_seen_views of the other
-    # capture's cameras see the space where it was as empty
-    # "not seen ≠ added" likewise: new geometry counts only where the old capture saw empty
-    # space (a hole in the old cloud is not an addition; measured on the demo scene:
-    # 114 false floor-patch changes → 23 with it and 2 views)
+    # not seen is not changed
+    # a removed candidate counts only where the after capture saw empty space
     check_seen_removed: bool = True
+    # an unidentified added cluster counts only where the before capture saw empty space
     check_seen_added: bool = True
+    # views that must see the space as empty for a point to count as seen
     min_seen_views: int = 2
+    # share of an unidentified added cluster's points that must be seen as empty
     min_seen_fraction: float = 0.5
-    # an unidentified cluster smaller than this is not reported as a change (it stays in the
-    # clusters table): ~5 × 5 cm of surface at a 2.5 mm spacing
+    # smallest unidentified cluster reported as a change, points (~5 × 5 cm at 2.5 mm spacing)
     unidentified_min_points: int = 300
-    # merging clusters of one object
+    # merging
+    # merge clusters that the same detection box contains (an object split in parts)
     merge_clusters: bool = True
+    # share of a cluster's box a detection must contain to claim it
     merge_containment: float = 0.6
+    # share of images two clusters must share a detection in to merge
     merge_shared_fraction: float = 0.5
+    # merged extent may exceed the class diameter by this factor
     merge_size_margin: float = 1.25
-    # identification (thesis eq. 3.1)
+    # identification and change types
+    # smallest identification metric (mean IoU × overlaps / occurrences) that names a cluster
     identify_threshold: float = 0.5
-    # change typing against the twin
+    # a removed and an added cluster of one class further apart than this are not a move, metres
     moved_max_distance: float = 5.0
+    # a swap's clusters lie closer than this × the larger of the two diameters
     swap_distance_factor: float = 0.5
+    # a removed cluster closes a twin instance within this × its class diameter
     instance_match_factor: float = 1.0
+    # smallest reach of that match, metres (instance_match_factor × diameter if larger)
     instance_match_min: float = 0.25
+    # seed of every sample the stage draws (z-buffer points, spacing and statistics samples)
     seed: int = 0
 
     def __post_init__(self) -> None:

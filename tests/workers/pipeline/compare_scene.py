@@ -13,7 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from workers.pipeline.compare import Camera, CaptureData, TwinInstance
+from workers.pipeline.compare import (
+    PRESETS,
+    Camera,
+    CaptureData,
+    CompareOptions,
+    CompareResult,
+    TwinInstance,
+    compare_snapshots,
+)
 from workers.pipeline.geometry import make_rigid
 
 DENSITY = 4000.0  # points per m² (median spacing ≈ 8 mm)
@@ -220,3 +228,20 @@ class Counter:
     def __call__(self) -> str:
         self.n += 1
         return f"{self.prefix}-{self.n}"
+
+
+# the shared scene of the change tests: a crate and a bin seen by a ring of cameras
+CAMS = ring_cameras()
+BASE = [crate(-0.8, 0.5), bin_(0.7, -0.6)]
+TWIN = twin_of(BASE, ["crate-1", "bin-1"])
+
+
+def run(
+    before: CaptureData,
+    objs: Sequence[Obj],
+    twin: Sequence[TwinInstance] = TWIN,
+    options: CompareOptions = PRESETS["default"],
+) -> CompareResult:
+    """Compare ``before`` with a capture of ``objs`` (seed 2) by the ring cameras."""
+    after = capture(objs, CAMS, seed=2)
+    return compare_snapshots(before, after, twin, CLASSES, DIAMETERS, options, new_id=Counter())

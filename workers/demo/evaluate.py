@@ -11,12 +11,14 @@ from typing import Any
 import numpy as np
 
 from workers.pipeline.geometry import pose_error
-from workers.pipeline.pose import symmetric_pose_error
-from workers.pipeline.symmetry import spec_from_json
+from workers.pipeline.model.symmetry_group import spec_from_json, symmetric_pose_error
 
 
 @dataclass(frozen=True)
 class Match:
+    """A true change and the found change paired with it (None when missed); the pose errors
+    (see :class:`PoseErrors`) are None unless both carry a pose."""
+
     truth: dict[str, Any]
     found: dict[str, Any] | None
     translation_error_m: float | None
@@ -44,11 +46,22 @@ def _symmetry(truth: dict[str, Any], name: str) -> Any:
     return spec_from_json(raw)
 
 
-def errors(
-    estimated: Any, true: Any, symmetry: Any
-) -> tuple[float, float, list[float], list[float]]:
-    """(translation m, geodesic rotation deg, per-axis xyz m, roll/pitch/yaw deg of the
-    residual rotation), minimised over ``symmetry`` when given."""
+@dataclass(frozen=True)
+class PoseErrors:
+    """How far an estimated env_from_object pose is from the true one: translation (m) and
+    geodesic rotation (degrees), minimised over the object's symmetry when it has one; the
+    per-axis translation (x, y, z, m) and the residual rotation as roll/pitch/yaw (degrees;
+    NaN for a symmetric object, where no single residual is meaningful)."""
+
+    translation_m: float
+    rotation_deg: float
+    xyz_m: list[float]
+    rpy_deg: list[float]
+
+
+def errors(estimated: Any, true: Any, symmetry: Any) -> PoseErrors:
+    """The :class:`PoseErrors` of 4×4 ``estimated`` against 4×4 ``true`` (metres),
+    minimised over ``symmetry`` when given."""
     est, tru = np.asarray(estimated, dtype=np.float64), np.asarray(true, dtype=np.float64)
     if symmetry is not None and symmetry.kind != "none":
         dt, dr = symmetric_pose_error(est, tru, symmetry)
@@ -61,7 +74,7 @@ def errors(
         if symmetry is None or symmetry.kind == "none"
         else [float("nan")] * 3
     )
-    return dt, dr, xyz, rpy
+    return PoseErrors(dt, dr, xyz, rpy)
 
 
 def match_changes(
@@ -80,11 +93,9 @@ def match_changes(
             continue
         chosen = candidates[0]
         unused.remove(chosen)
-        dt = dr = None
-        xyz = rpy = None
-        if change.get("pose") is not None and chosen.get("pose") is not None:
-            dt, dr, xyz, rpy = errors(
-                chosen["pose"], change["pose"], _symmetry(truth, change["object"])
-            )
-        matches.append(Match(change, chosen, dt, dr, xyz, rpy))
+        if change.get("pose") is None or chosen.get("pose") is None:
+            matches.append(Match(change, chosen, None, None, None, None))
+            continue
+        e = errors(chosen["pose"], change["pose"], _symmetry(truth, change["object"]))
+        matches.append(Match(change, chosen, e.translation_m, e.rotation_deg, e.xyz_m, e.rpy_deg))
     return matches, unused

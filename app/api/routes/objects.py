@@ -39,12 +39,12 @@ def model_upload(
     },
 )
 def create_object(
-    upload: Annotated[objects.ModelUpload, Depends(model_upload)],
     session: SessionDep,
     storage: StorageDep,
     settings: SettingsDep,
     response: Response,
     _key: AdminKey,
+    upload: Annotated[objects.ModelUpload, Depends(model_upload)],
 ) -> ObjectRead:
     """Add a model to the library; a job samples it, measures its diameter and detects its
     symmetry (poll the job, or GET the object until `state` is `ready`)."""

@@ -8,7 +8,7 @@ the pipeline runs directly (no HTTP): reconstruct both captures (SfM + markers; 
 capture refined against the before cloud, as the snapshot job does), compare at the
 thesis's thresholds (the "thesis" preset at mean + k·σ, k ∈ {0, 0.5, 1, 1.5}) and with
 our default options ("ours"), then pose every identified change with the comparison job's
-own pose step (:func:`workers.pipeline.posing.pose_changes`) and score against the ground
+own pose step (:func:`workers.pipeline.pose.posing.pose_changes`) and score against the ground
 truth (:func:`workers.demo.evaluate.match_changes`). Each found change also gets the oracle
 metric (:func:`oracle_metrics`: what a perfect cluster would score against the same
 detections). Also: every scenario again with a clean detector (no misses or false boxes,
@@ -39,8 +39,6 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from workers.pipeline.posing import cameras_from_json, pose_changes
-
 from bench.reconstruct_bench import (
     camera_metrics,
     cloud_metrics,
@@ -54,6 +52,7 @@ from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model import PreparedModel, prepare_model
+from workers.pipeline.pose.posing import cameras_from_json, pose_changes
 from workers.pipeline.reconstruct import options_from_preset, parse_cameras, reconstruct
 from workers.pipeline.reconstruct.fusion import read_ply
 from workers.pipeline.synth import (

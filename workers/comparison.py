@@ -24,7 +24,7 @@ from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.model import load_prepared
-from workers.pipeline.posing import cameras_from_json, pose_changes
+from workers.pipeline.pose.posing import cameras_from_json, pose_changes
 from workers.progress import weighted
 from workers.runner import JobContext, run_job
 

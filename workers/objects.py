@@ -12,7 +12,7 @@ from app.core import objects
 from app.core.db import transaction
 from app.core.enums import ObjectState
 from workers.pipeline.model import MODEL_PRESETS, PreparedModel, prepare_model
-from workers.pipeline.symmetry import spec_from_json, spec_to_json
+from workers.pipeline.model.symmetry_group import spec_from_json, spec_to_json
 from workers.runner import JobContext, run_job
 
 

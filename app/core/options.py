@@ -19,6 +19,9 @@ from app.core.jsondoc import INT_LIMIT, show
 
 SCHEMA_PATH = Path(__file__).with_name("option_schema.json")
 STAGES = ("reconstruct", "compare")
+#: a stage's options may hold another's under its name: the comparison job poses what it
+#: found, so the compare options carry the pose options as ``"pose": {...}``
+NESTED_STAGES: dict[str, str] = {"compare": "pose"}
 
 
 @cache
@@ -85,9 +88,9 @@ def check_retention_options(options: Any, where: str = "options.retention") -> d
 
 
 def check_stage_options(stage: str, options: Any, where: str = "options") -> dict[str, Any]:
-    """One stage's options (``stage`` "reconstruct" or "compare"), as given; InvalidInput
-    naming ``where`` and the option for an unknown preset or option or a value of the
-    wrong JSON type."""
+    """One stage's options (``stage`` "reconstruct", "compare" or "pose"; the compare options
+    may nest the pose options under ``"pose"``), as given; InvalidInput naming ``where`` and
+    the option for an unknown preset or option or a value of the wrong JSON type."""
     if options is None:
         return {}
     if not isinstance(options, dict):
@@ -98,11 +101,14 @@ def check_stage_options(stage: str, options: Any, where: str = "options") -> dic
             f"{where}.preset: unknown {stage} preset {show(options['preset'])}; "
             f"known: {', '.join(spec['presets'])}"
         )
-    unknown = sorted(set(options) - set(spec["options"]) - {"preset"})
+    nested = NESTED_STAGES.get(stage)
+    unknown = sorted(set(options) - set(spec["options"]) - {"preset", nested})
     if unknown:
         raise InvalidInput(f"{where}: unknown {stage} option(s) {', '.join(unknown)}")
     for name, value in options.items():
-        if name != "preset":
+        if name == nested:
+            check_stage_options(name, value, f"{where}.{name}")
+        elif name != "preset":
             _check_value(f"{where}.{name}", value, spec["options"][name])
     return dict(options)
 

@@ -14,8 +14,8 @@ STAGES: dict[str, str] = {
     "ingest": "workers.pipeline.ingest",
     "reconstruct": "workers.pipeline.reconstruct.cli",
     "compare": "workers.pipeline.compare.cli",
-    "pose": "workers.pipeline.pose",
-    "model": "workers.pipeline.model",
+    "pose": "workers.pipeline.pose.cli",
+    "model": "workers.pipeline.model.cli",
     "option-schema": "workers.pipeline.option_schema",
 }
 

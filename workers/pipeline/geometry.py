@@ -74,6 +74,44 @@ def rotation_angle_deg(rotation: ArrayLike) -> float:
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
+def skew(vector: ArrayLike) -> NDArray[np.float64]:
+    """(3, 3) cross-product matrix ``[v]×`` of a (3,) vector: ``skew(v) @ w == cross(v, w)``."""
+    v = np.asarray(vector, dtype=np.float64).reshape(3)
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def rotation_about_unit_axis(unit_axis: ArrayLike, angle_rad: float) -> NDArray[np.float64]:
+    """(3, 3) rotation by ``angle_rad`` (right-handed) about a (3,) axis of length 1
+    (Rodrigues: ``I + sin θ K + (1 − cos θ) K²``, ``K = skew(axis)``); not normalised here."""
+    k = skew(unit_axis)
+    out: NDArray[np.float64] = (
+        np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
+    )
+    return out
+
+
+def axis_angle_matrix(axis: ArrayLike, angle_rad: float) -> NDArray[np.float64]:
+    """(3, 3) rotation by ``angle_rad`` (right-handed) about the (3,) ``axis`` (any length > 0);
+    ShapeError for a wrong shape or a zero or non-finite axis."""
+    a = np.asarray(axis, dtype=np.float64).reshape(-1)
+    if a.shape != (3,):
+        raise ShapeError(f"axis must be (3,), got {a.shape}")
+    norm = float(np.linalg.norm(a))
+    if norm <= 0 or not np.isfinite(norm):
+        raise ShapeError("axis must be a finite non-zero vector")
+    return rotation_about_unit_axis(a / norm, angle_rad)
+
+
+def rotation_from_rotvec(rotvec: ArrayLike) -> NDArray[np.float64]:
+    """(3, 3) rotation of a (3,) rotation vector (axis × angle in radians); the identity
+    below 1e-12 rad."""
+    w = np.asarray(rotvec, dtype=np.float64).reshape(3)
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    return rotation_about_unit_axis(w / angle, angle)
+
+
 def pose_error(estimated_a_from_b: ArrayLike, true_a_from_b: ArrayLike) -> tuple[float, float]:
     """(translation error in metres, geodesic rotation error in degrees) between two poses."""
     est = as_mat4(estimated_a_from_b, "estimated")

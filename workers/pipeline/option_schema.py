@@ -1,4 +1,4 @@
-"""The names, presets and JSON types of the reconstruct and compare options, for the API.
+"""The names, presets and JSON types of the reconstruct, compare and pose options, for the API.
 
 The API may not import the workers (ARCHITECTURE.md), yet it should refuse an environment or
 comparison whose options a job would refuse, when they are posted rather than when the job
@@ -22,6 +22,7 @@ from typing import Any
 
 from workers.pipeline.compare.options import PRESETS as COMPARE_PRESETS
 from workers.pipeline.compare.options import CompareOptions, ThresholdSpec
+from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
 from workers.pipeline.reconstruct.options import PRESETS as RECONSTRUCT_PRESETS
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
@@ -52,13 +53,15 @@ def _options(cls: type) -> dict[str, dict[str, Any]]:
 
 
 def option_schema() -> dict[str, Any]:
-    """{"reconstruct": {"presets", "options"}, "compare": {...}, "threshold": {...}}."""
+    """{"reconstruct": {"presets", "options"}, "compare": {...}, "pose": {...},
+    "threshold": {...}}; the pose options are the ``pose`` key of the compare options."""
     return {
         "reconstruct": {
             "presets": sorted(RECONSTRUCT_PRESETS),
             "options": _options(ReconstructOptions),
         },
         "compare": {"presets": sorted(COMPARE_PRESETS), "options": _options(CompareOptions)},
+        "pose": {"presets": sorted(POSE_PRESETS), "options": _options(PoseOptions)},
         "threshold": _options(ThresholdSpec),
     }
 

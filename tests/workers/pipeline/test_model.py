@@ -15,16 +15,16 @@ from workers.pipeline.model import (
     MODEL_PRESETS,
     ModelFileError,
     ModelOptions,
-    _texture_colors,
     check_model_header,
     diameter_m,
     load_prepared,
     load_surface,
     prepare_model,
 )
-from workers.pipeline.symmetry import (
+from workers.pipeline.model.detect_symmetry import detect_symmetry
+from workers.pipeline.model.load import _texture_colors
+from workers.pipeline.model.symmetry_group import (
     SymmetrySpec,
-    detect_symmetry,
     rotation_about,
     spec_from_json,
     spec_to_json,

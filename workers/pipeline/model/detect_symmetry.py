@@ -1,176 +1,23 @@
-"""Symmetry of a library object: the spec, its JSON form, and detection from a surface cloud.
-
-**What "symmetric" means here.** A rotation ``S`` (4×4 ``object_from_object``, a rotation
-about a point of the object) is a symmetry when the object's *surface geometry* maps onto
-itself: the symmetric mean nearest-neighbour distance between the sampled surface and
-its rotated copy is within ``max_mean_ratio`` of the sampling spacing, and at most
-``max_far_fraction`` of points land more than ``far_ratio`` spacings off the surface.
-Geometry, not colour, decides, because pose estimation registers geometry: scene colours
-from photogrammetry are unreliable under shop-floor lighting, and a pose that only a
-label distinguishes is still ambiguous to the geometric fit. Colour is measured too and
-recorded as ``appearance_breaks`` (e.g. a can's label, a Rubik's cube's faces, the front
-of a mustard bottle): pose estimation then *tries* to pick the right equivalent pose by
-colour and says so, but the geometric group is what makes a pose ``ambiguous``.
-
-For pose reporting, poses ``env_from_object @ S`` for every ``S`` in the group are
-equally good fits; exactly one canonical pose is published (the one whose object "up"
-agrees best with the environment's up, or closest to a previous pose) together with
-the others.
-
-**Spec (JSON-serialisable)**::
-
-    {"kind": "none"}
-    {"kind": "discrete", "rotations": [4x4, ...]}
-    {"kind": "continuous", "axis": [x, y, z], "origin": [x, y, z], "rotations": [4x4, ...]}
-
-``discrete``: the full finite group, identity first. ``continuous``: every rotation about
-``axis`` through ``origin``, composed with each of ``rotations`` (identity first, plus e.g.
-the 180° flip of a plain can).
-    optional in each: "appearance_breaks": bool
-
-Matrices are row-major nested lists, rotations about points of the object frame (metres).
+"""Detect a library object's rotational symmetry group from its surface cloud (see
+:mod:`workers.pipeline.model.symmetry_group` for what "symmetric" means and the spec).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from workers.pipeline.errors import InputError, ShapeError
+from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, Points, as_points, rotation_angle_deg
+from workers.pipeline.model.symmetry_group import SymmetrySpec, rotation_about
 
-KINDS = ("none", "discrete", "continuous")
 # distinct elements of the groups we detect (cyclic up to order 4, dihedral, octahedral)
 # are at least 90° apart; closer candidates are the same element measured twice
 DEDUPE_DEG = 30.0
-
-
-@dataclass(frozen=True, eq=False)
-class SymmetrySpec:
-    """Rotational symmetry group of an object (object frame, metres).
-
-    ``rotations``: tuple of 4×4 ``object_from_object`` (identity first); for ``continuous``
-    these are the extra discrete elements combined with every rotation about ``axis`` (unit
-    (3,)) through ``origin`` ((3,), metres). ``appearance_breaks``: colour differs under at
-    least one element.
-    """
-
-    kind: str = "none"
-    rotations: tuple[Mat4, ...] = field(default_factory=lambda: (np.eye(4),))
-    axis: NDArray[np.float64] | None = None
-    origin: NDArray[np.float64] | None = None
-    appearance_breaks: bool = False
-
-    @property
-    def is_symmetric(self) -> bool:
-        """True when some pose other than the identity is equivalent."""
-        return self.kind == "continuous" or len(self.rotations) > 1
-
-    def continuous_rotation(self, angle_rad: float) -> Mat4:
-        """4×4 rotation by ``angle_rad`` about the continuous axis (identity if none)."""
-        if self.axis is None or self.origin is None:
-            return np.eye(4)
-        return rotation_about(self.axis, angle_rad, self.origin)
-
-    def sample(self, n_angles: int = 12) -> list[Mat4]:
-        """Finite list of group elements (continuous: ``n_angles`` steps per discrete element)."""
-        if self.kind != "continuous":
-            return list(self.rotations)
-        out = []
-        for s in self.rotations:
-            for k in range(n_angles):
-                out.append(self.continuous_rotation(2 * np.pi * k / n_angles) @ s)
-        return out
-
-
-NO_SYMMETRY = SymmetrySpec()
-
-
-def axis_angle_matrix(axis: Any, angle_rad: float) -> NDArray[np.float64]:
-    """(3, 3) rotation by ``angle_rad`` (right-handed) about the (3,) ``axis`` (any length > 0)."""
-    a = np.asarray(axis, dtype=np.float64).reshape(-1)
-    if a.shape != (3,):
-        raise ShapeError(f"axis must be (3,), got {a.shape}")
-    norm = float(np.linalg.norm(a))
-    if norm <= 0 or not np.isfinite(norm):
-        raise ShapeError("axis must be a finite non-zero vector")
-    x, y, z = a / norm
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    out: NDArray[np.float64] = (
-        np.eye(3) + np.sin(angle_rad) * k + (1.0 - np.cos(angle_rad)) * (k @ k)
-    )
-    return out
-
-
-def rotation_about(
-    axis: NDArray[np.float64], angle_rad: float, origin: NDArray[np.float64]
-) -> Mat4:
-    """4×4 rotation by ``angle_rad`` about the line through ``origin`` along ``axis``."""
-    r = axis_angle_matrix(axis, angle_rad)
-    out = np.eye(4)
-    out[:3, :3] = r
-    out[:3, 3] = origin - r @ origin
-    return out
-
-
-def _check_rotation(m: Any, what: str) -> Mat4:
-    a = np.asarray(m, dtype=np.float64)
-    if a.shape != (4, 4) or not np.isfinite(a).all():
-        raise InputError(f"symmetry {what} must be a finite 4×4 matrix")
-    r = a[:3, :3]
-    if not np.allclose(r @ r.T, np.eye(3), atol=1e-3) or np.linalg.det(r) < 0.99:
-        raise InputError(f"symmetry {what} is not a proper rotation")
-    if not np.allclose(a[3], [0, 0, 0, 1], atol=1e-9):
-        raise InputError(f"symmetry {what} must have last row 0 0 0 1")
-    return a
-
-
-def spec_from_json(raw: Any) -> SymmetrySpec:
-    """Parse and validate a spec (format in the module docstring); InputError if invalid."""
-    if not isinstance(raw, dict) or raw.get("kind") not in KINDS:
-        raise InputError(f"symmetry must be an object with kind in {KINDS}, got {raw!r:.200}")
-    kind = raw["kind"]
-    brk = bool(raw.get("appearance_breaks", False))
-    if kind == "none":
-        return SymmetrySpec(appearance_breaks=brk)
-    rots_raw = raw.get("rotations", [np.eye(4).tolist()] if kind == "continuous" else None)
-    if not isinstance(rots_raw, list) or not rots_raw:
-        raise InputError("symmetry rotations must be a non-empty list of 4×4 matrices")
-    rots = [_check_rotation(m, f"rotations[{i}]") for i, m in enumerate(rots_raw)]
-    if not any(rotation_angle_deg(r[:3, :3]) < 1e-3 for r in rots):
-        rots.insert(0, np.eye(4))
-    rots.sort(key=lambda r: rotation_angle_deg(r[:3, :3]))
-    if kind == "discrete":
-        return SymmetrySpec("discrete", tuple(rots), appearance_breaks=brk)
-    axis = np.asarray(raw.get("axis"), dtype=np.float64)
-    origin = np.asarray(raw.get("origin", [0.0, 0.0, 0.0]), dtype=np.float64)
-    if axis.shape != (3,) or origin.shape != (3,) or not np.isfinite([*axis, *origin]).all():
-        raise InputError("continuous symmetry needs axis [x, y, z] and origin [x, y, z]")
-    norm = float(np.linalg.norm(axis))
-    if norm < 1e-9:
-        raise InputError("continuous symmetry axis must be non-zero")
-    return SymmetrySpec("continuous", tuple(rots), axis / norm, origin, brk)
-
-
-def spec_to_json(spec: SymmetrySpec) -> dict[str, Any]:
-    """JSON form of a spec (inverse of :func:`spec_from_json`)."""
-    out: dict[str, Any] = {"kind": spec.kind}
-    if spec.kind != "none":
-        out["rotations"] = [np.round(r, 9).tolist() for r in spec.rotations]
-    if spec.kind == "continuous":
-        assert spec.axis is not None and spec.origin is not None
-        out["axis"] = spec.axis.tolist()
-        out["origin"] = spec.origin.tolist()
-    out["appearance_breaks"] = spec.appearance_breaks
-    return out
-
-
-# --------------------------------------------------------------------------- detection
 
 
 @dataclass(frozen=True)

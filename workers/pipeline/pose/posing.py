@@ -9,7 +9,6 @@ storage here.
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping, Sequence
-from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -23,14 +22,11 @@ from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model import PreparedModel
-from workers.pipeline.pose import (
-    POSE_PRESETS,
-    RUNNER_UP_REASON,
-    SceneCloud,
-    distinct_pose,
-    estimate_pose,
-)
-from workers.pipeline.verify import ReprojectionCheck, reprojection_check
+from workers.pipeline.pose.candidates import distinct_pose
+from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.estimate import estimate_pose
+from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
+from workers.pipeline.pose.verify import RUNNER_UP_REASON, ReprojectionCheck, reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
@@ -62,13 +58,10 @@ def pose_change(
     after: CaptureData,
     class_id: int,
     depth_maps: Sequence[DepthMap] | None,
-    pose_options: Mapping[str, Any],
+    options: PoseOptions,
 ) -> dict[str, Any]:
     """Pose, quality and centre of one change; a failed registration is reported on the
-    change (``verified: false`` with the reason), never dropped. ``pose_options`` is the
-    job's ``{"preset": name, **overrides}`` for :class:`~workers.pipeline.pose.PoseOptions`.
-    """
-    options = POSE_PRESETS[str(pose_options.get("preset", "default"))]
+    change (``verified: false`` with the reason), never dropped."""
     try:
         pose = estimate_pose(
             model,
@@ -76,7 +69,7 @@ def pose_change(
             cluster_points_env=change.cluster.points_env,
             previous_env_from_object=change.previous_env_from_object,
             free_space=depth_maps or (),
-            options=replace(options, **{k: v for k, v in pose_options.items() if k != "preset"}),
+            options=options,
         )
     except PipelineError as exc:
         return {
@@ -166,8 +159,11 @@ def pose_changes(
     """Every change of ``result`` as its contract JSON with ``centroid_env`` and, for added,
     moved and swapped objects whose class is in ``available``, ``pose`` (4×4
     env_from_object, metres) and ``pose_quality``. ``load_model(name)`` is called at most
-    once per class, only for classes that need a pose."""
+    once per class, only for classes that need a pose. ``pose_options``: the job's
+    ``{"preset": name, **overrides}`` for :class:`~workers.pipeline.pose.PoseOptions`
+    (InputError for an unknown preset or option)."""
     report: Progress = progress or (lambda _stage, _fraction: None)
+    options = pose_options_from_json(pose_options)
     posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in available]
     scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
     depth_maps = render_depth_maps(after, compare_options) if posed else None
@@ -189,7 +185,7 @@ def pose_changes(
                     after,
                     list(classes).index(name),
                     depth_maps,
-                    pose_options or {},
+                    options,
                 )
             )
         records.append(record)

@@ -1,0 +1,154 @@
+"""Verification of a pose (workers.pipeline.pose.verify): the 3D rejections and the
+re-projection check against the detector's boxes.
+
+The re-projection oracle: a box model 1 m in front of two cameras, the detector's boxes
+being the true pose's own projection. The right pose re-projects onto them (IoU ≥ 0.9; the
+1st-99th percentile box of the projected points against their full extent loses a few
+per cent), a pose 20 cm to the side misses them (IoU 0).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+
+from workers.pipeline.compare.data import Camera
+from workers.pipeline.geometry import make_rigid, transform_points
+from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, Trial
+from workers.pipeline.pose.refine import Refinement
+from workers.pipeline.pose.verify import ReprojectionOptions, reprojection_check, verify_fit
+
+K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
+CLASS_ID = 2
+
+
+def box_model(n: int = 4000, seed: int = 0) -> np.ndarray:
+    """(n, 3) points on the surface of a 0.2 × 0.1 × 0.1 m box centred at the origin."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-0.5, 0.5, size=(n, 3))
+    axis = rng.integers(0, 3, n)
+    p[np.arange(n), axis] = np.sign(p[np.arange(n), axis]) * 0.5
+    return p * np.array([0.2, 0.1, 0.1])
+
+
+def cameras() -> list[Camera]:
+    """Two cameras at z = 0 looking along +z (OpenCV axes), 10 cm apart."""
+    return [
+        Camera(f"cam{i}", K, 640, 480, make_rigid(np.eye(3), (-0.05 + 0.1 * i, 0.0, 0.0)))
+        for i in range(2)
+    ]
+
+
+def yolo_row(camera: Camera, points_env: np.ndarray, class_id: int) -> np.ndarray:
+    """The detector's row (class, cx, cy, w, h; normalised) of the points' full 2D extent."""
+    p_cam = transform_points(camera.cam_from_env, points_env)
+    uv = p_cam[:, :2] / p_cam[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    (x1, y1), (x2, y2) = uv.min(axis=0), uv.max(axis=0)
+    w, h = camera.width, camera.height
+    return np.array(
+        [[class_id, (x1 + x2) / 2 / w, (y1 + y2) / 2 / h, (x2 - x1) / w, (y2 - y1) / h]]
+    )
+
+
+@dataclass(frozen=True)
+class BoxScene:
+    """The box model (object frame), its true ``env_from_object``, the cameras and the
+    detector's rows per camera name."""
+
+    model: np.ndarray
+    env_from_object: np.ndarray
+    cameras: list[Camera]
+    detections: dict[str, np.ndarray]
+
+
+@pytest.fixture
+def scene() -> BoxScene:
+    model = box_model()
+    env_from_object = make_rigid(np.eye(3), (0.0, 0.0, 1.0))
+    cams = cameras()
+    posed = transform_points(env_from_object, model)
+    return BoxScene(
+        model, env_from_object, cams, {c.name: yolo_row(c, posed, CLASS_ID) for c in cams}
+    )
+
+
+def test_the_right_pose_reprojects_onto_the_detections(scene: BoxScene) -> None:
+    model, env_from_object = scene.model, scene.env_from_object
+    cams, detections = scene.cameras, scene.detections
+    check = reprojection_check(model, env_from_object, CLASS_ID, cams, detections)
+    assert check.passed and check.views == 2 and check.visible_views == 2
+    assert check.mean_iou >= 0.9
+    assert check.to_json()["passed"] is True
+
+
+def test_a_shifted_pose_misses_them(scene: BoxScene) -> None:
+    model, env_from_object = scene.model, scene.env_from_object
+    cams, detections = scene.cameras, scene.detections
+    shifted = make_rigid(np.eye(3), (0.2, 0.0, 0.0)) @ env_from_object
+    check = reprojection_check(model, shifted, CLASS_ID, cams, detections)
+    assert not check.passed and check.views == 2 and check.mean_iou < 0.1
+
+
+def test_another_class_or_too_few_views_do_not_pass(scene: BoxScene) -> None:
+    model, env_from_object = scene.model, scene.env_from_object
+    cams, detections = scene.cameras, scene.detections
+    other = reprojection_check(model, env_from_object, CLASS_ID + 1, cams, detections)
+    assert not other.passed and other.views == 0 and other.visible_views == 2
+    assert other.mean_iou == 0.0
+    one = reprojection_check(model, env_from_object, CLASS_ID, cams[:1], detections)
+    assert not one.passed and one.views == 1 and one.mean_iou >= 0.9
+    lenient = ReprojectionOptions(min_views=1)
+    assert reprojection_check(
+        model, env_from_object, CLASS_ID, cams[:1], detections, None, lenient
+    ).passed
+    behind = make_rigid(np.eye(3), (0.0, 0.0, -1.0))
+    unseen = reprojection_check(model, behind, CLASS_ID, cams, detections)
+    assert unseen.visible_views == 0 and not unseen.passed
+
+
+def test_depth_maps_must_match_the_cameras(scene: BoxScene) -> None:
+    model, env_from_object = scene.model, scene.env_from_object
+    cams, detections = scene.cameras, scene.detections
+    with pytest.raises(ValueError, match="one map per camera"):
+        reprojection_check(model, env_from_object, CLASS_ID, cams, detections, depth_maps=[])
+
+
+def refinement(
+    fitness: float, rmse_m: float, score: float = 1.0, runner_up: float = 0.0
+) -> Refinement:
+    pose = np.eye(4)
+    return Refinement(
+        pose,
+        score,
+        runner_up,
+        fitness,
+        rmse_m,
+        0.005,
+        Trial("t", score, fitness, rmse_m, 0.0, pose),
+    )
+
+
+def test_verify_fit_names_each_failed_figure() -> None:
+    """Each threshold rejects on its own, with a message naming the figure; a good fit with
+    a covered cluster is verified. Voxel 10 mm: RMSE limit min(3 mm, 6 mm) = 3 mm."""
+    o, v = POSE_PRESETS["default"], 0.01
+    model = box_model(2000)
+    good = verify_fit(refinement(0.5, 0.001), model, model + 0.0005, v, o)
+    assert good.verified and good.rejections == () and good.cluster_coverage == 1.0
+    assert verify_fit(refinement(0.5, 0.001), model, None, v, o).cluster_coverage is None
+    cases = {
+        "fitness 0.10 < 0.25": refinement(0.1, 0.001),
+        "inlier RMSE 4.0 mm > 3.0 mm": refinement(0.5, 0.004),
+        f"{RUNNER_UP_REASON} 0.90 of the best": refinement(0.5, 0.001, 1.0, 0.9),
+    }
+    for reason, fit in cases.items():
+        result = verify_fit(fit, model, None, v, o)
+        assert not result.verified and len(result.rejections) == 1, result
+        assert result.rejections[0].startswith(reason), result
+    elsewhere = model + np.array([0.0, 0.0, 0.5])  # a cluster the posed model does not explain
+    uncovered = verify_fit(refinement(0.5, 0.001), model, elsewhere, v, o)
+    assert uncovered.rejections == ("cluster coverage 0.00 < 0.85",)
+    nothing = verify_fit(refinement(0.0, 0.0), model, None, v, o)  # no inlier at all
+    assert len(nothing.rejections) == 2 and nothing.rejections[1].startswith("inlier RMSE")

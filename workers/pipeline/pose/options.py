@@ -1,0 +1,96 @@
+"""Pose estimation settings: :class:`PoseOptions` and its named presets.
+
+Distances are in units of the model's feature voxel ``v`` (``diameter / voxel_divisor``, see
+:class:`~workers.pipeline.model.ModelOptions`) unless the name ends in ``_m`` (metres).
+Measurement history behind the defaults: ``docs/decisions/pose.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from workers.pipeline.errors import InputError
+
+
+@dataclass(frozen=True)
+class PoseOptions:
+    """Pose estimation settings (one line each: meaning, unit, when to change it)."""
+
+    #: crop radius around the cluster, × model diameter; raise when clusters are far off-centre
+    crop_factor: float = 0.7
+    #: RANSAC seeds per round; raise for hard views (clutter, little overlap), costs time
+    n_seeds: int = 5
+    #: seeds always run per round before stopping early when two starts agree; lower is faster
+    min_seeds: int = 2
+    #: RANSAC iterations per seed; raise when good matches are rare (little overlap)
+    ransac_max_iterations: int = 20000
+    #: RANSAC early-stop confidence in [0, 1]; rarely changed
+    ransac_confidence: float = 0.999
+    #: RANSAC inlier distance, voxels; raise for noisy scans
+    ransac_distance_voxels: float = 1.5
+    #: RANSAC edge-length similarity check in (0, 1]; lower accepts more distorted matches
+    edge_length_check: float = 0.9
+    #: truncation distance of the candidate score, voxels; rarely changed
+    score_voxels: float = 0.5
+    #: distinct candidates refined per round; raise when the right pose ranks low coarsely
+    n_refine: int = 3
+    #: best candidates also tried turned 180° and by near-symmetries; raise for elongated objects
+    n_flip_bases: int = 2
+    #: rounds of new seeds while the pose is not verified; raise for hard views, costs time
+    max_rounds: int = 2
+    #: truncation distance of the refined score, voxels; lower separates near-symmetric poses
+    fine_score_voxels: float = 0.3
+    #: ICP distance scales, voxels, coarse to fine; the first two also polish every candidate
+    icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
+    #: ICP iterations per scale of the refinement; raise if refinement has not converged
+    icp_max_iterations: int = 20
+    #: inlier distance of ``fitness``, voxels (capped by ``max_inlier_distance_m``)
+    inlier_voxels: float = 0.5
+    #: cap on every inlier distance, metres: the scan's noise, not the object's size
+    max_inlier_distance_m: float = 0.01
+    #: least share of model points near the scene for ``verified``; one view sees 30-60 %
+    min_fitness: float = 0.25
+    #: largest inlier RMSE for ``verified``, voxels (and at most 0.6 × max_inlier_distance_m)
+    max_rmse_voxels: float = 0.3
+    #: least tolerance of cluster coverage, voxels (3σ of the cluster's scatter, clipped)
+    coverage_voxels: float = 0.5
+    #: largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)
+    max_coverage_voxels: float = 1.5
+    #: least share of cluster points the posed model explains for ``verified``
+    min_cluster_coverage: float = 0.85
+    #: colour correlation margin that picks a symmetric object's equivalent pose (a label)
+    colour_margin: float = 0.1
+    #: support-plane band, voxels (≤ max_inlier_distance_m): removed, penalised below; 0 = off
+    support_band_voxels: float = 0.5
+    #: a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
+    max_sink_m: float = 0.01
+    #: a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
+    max_runner_up_ratio: float = 0.85
+    #: seed of RANSAC and the support-plane search; results are deterministic for a seed
+    seed: int = 0
+
+
+POSE_PRESETS: dict[str, PoseOptions] = {
+    "default": PoseOptions(),
+    "fast": PoseOptions(n_seeds=3, ransac_max_iterations=10000, max_rounds=1),
+    "thorough": PoseOptions(n_seeds=8, ransac_max_iterations=100000, max_rounds=4),
+}
+
+
+def pose_options_from_json(options: Mapping[str, Any] | None) -> PoseOptions:
+    """Options from a job's ``{"preset": name, **overrides}`` (the ``pose`` section of the
+    comparison options; lists become tuples). InputError for an unknown preset or option."""
+    overrides = dict(options or {})
+    preset = str(overrides.pop("preset", "default"))
+    if preset not in POSE_PRESETS:
+        raise InputError(f"unknown pose preset {preset!r}; known: {', '.join(POSE_PRESETS)}")
+    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(PoseOptions)})
+    if unknown:
+        raise InputError(f"unknown pose option(s): {', '.join(unknown)}")
+    values: dict[str, Any] = {
+        k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()
+    }
+    return dataclasses.replace(POSE_PRESETS[preset], **values)

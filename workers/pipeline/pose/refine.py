@@ -1,0 +1,148 @@
+"""Step 3 of pose estimation: refinement of the best distinct candidates.
+
+The best ``n_refine`` distinct candidates not refined yet (across rounds) are refined by
+multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` → ``0.25v``,
+pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels``, where
+near-symmetric alternatives separate. The winner gets a last ICP on every model point and
+is lifted onto its support when it sank into it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import open3d as o3d
+
+from workers.pipeline.geometry import Mat4, Points, transform_points
+from workers.pipeline.model import make_cloud
+from workers.pipeline.pose.candidates import (
+    CandidatePool,
+    FitContext,
+    distinct_pose,
+    distinct_ranked,
+)
+from workers.pipeline.pose.fit import (
+    icp_point_to_plane,
+    normalised,
+    out_of_support,
+    truncated_score,
+)
+from workers.pipeline.pose.result import Trial
+
+REG = o3d.pipelines.registration
+
+
+@dataclass(frozen=True)
+class Refined:
+    """One refined candidate: its fine ``score``, refined ``env_from_object`` and the
+    :class:`Trial` it started from."""
+
+    score: float
+    env_from_object: Mat4
+    trial: Trial
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """The winner of one round: ``env_from_object`` after the last ICP and support lift,
+    its fine ``score``, the ``runner_up`` (fine score of the best distinct other refined
+    pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
+    ``inlier_distance_m`` of the scene, and the ``best`` trial it came from."""
+
+    env_from_object: Mat4
+    score: float
+    runner_up: float
+    fitness: float
+    inlier_rmse_m: float
+    inlier_distance_m: float
+    best: Trial
+
+
+@dataclass
+class Refiner:
+    """Refinement state across rounds (mutable): every ``refined`` candidate so far, best
+    first after each round, and the ids of the trials already refined."""
+
+    ctx: FitContext
+    model_full: o3d.geometry.PointCloud
+    mid_points: Points
+    mid_normals: Points
+    refined: list[Refined] = field(default_factory=list)
+    refined_ids: set[int] = field(default_factory=set)
+
+    @classmethod
+    def create(cls, ctx: FitContext) -> Refiner:
+        """A refiner with the model's full cloud and its ``v/2`` subsample."""
+        m = ctx.model
+        model_full = make_cloud(m.points, m.normals, m.colors)
+        model_mid = model_full.voxel_down_sample(m.voxel_m / 2)
+        return cls(
+            ctx,
+            model_full,
+            np.asarray(model_mid.points),
+            normalised(np.asarray(model_mid.normals)),
+        )
+
+    def _refine(self, trial: Trial) -> Refined:
+        """Multi-scale ICP of one trial on the mid subsample, scored at the fine scale."""
+        o, v = self.ctx.options, self.ctx.model.voxel_m
+        target = self.ctx.region.target_fine
+        pose = trial.env_from_object
+        for scale in o.icp_scales_voxels:
+            pose = icp_point_to_plane(
+                self.mid_points, self.mid_normals, target, pose, scale * v, o.icp_max_iterations
+            )
+        posed_mid = transform_points(pose, self.mid_points)
+        score = truncated_score(
+            target.tree, posed_mid, o.fine_score_voxels * v
+        ) * self.ctx.exclusion(posed_mid)
+        return Refined(score, pose, trial)
+
+    def round(self, pool: CandidatePool) -> Refinement:
+        """Step 3 for one round: refine the new best distinct candidates of ``pool``, then
+        finish the best refined pose so far."""
+        m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
+        v = m.voxel_m
+        distinct = distinct_ranked(pool.trials, m.symmetry, m.diameter_m, m.centre_object)
+        for t in [t for t in distinct if id(t) not in self.refined_ids][: o.n_refine]:
+            self.refined_ids.add(id(t))
+            self.refined.append(self._refine(t))
+        self.refined.sort(key=lambda r: -r.score)
+        best = self.refined[0]
+        env_from_object = icp_point_to_plane(
+            m.points,
+            m.normals,
+            region.target_fine,
+            best.env_from_object,
+            o.icp_scales_voxels[-1] * v,
+            o.icp_max_iterations,
+        )
+        env_from_object = out_of_support(
+            env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
+        )
+        runner_up = next(
+            (
+                r.score
+                for r in self.refined[1:]
+                if distinct_pose(
+                    r.env_from_object,
+                    env_from_object,
+                    m.symmetry,
+                    m.diameter_m,
+                    centre=m.centre_object,
+                )
+            ),
+            0.0,
+        )
+        dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
+        ev = REG.evaluate_registration(self.model_full, region.fine, dist_in, env_from_object)
+        return Refinement(
+            env_from_object=env_from_object,
+            score=best.score,
+            runner_up=runner_up,
+            fitness=float(ev.fitness),
+            inlier_rmse_m=float(ev.inlier_rmse),
+            inlier_distance_m=dist_in,
+            best=best.trial,
+        )

@@ -1,0 +1,64 @@
+"""What pose estimation returns: :class:`PoseResult`, with the :class:`Trial` candidates."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from workers.pipeline.geometry import Mat4
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One global-registration candidate after its short ICP polish."""
+
+    source: str
+    score: float
+    fitness: float
+    inlier_rmse_m: float
+    seconds: float
+    env_from_object: Mat4
+
+
+@dataclass(frozen=True, eq=False)
+class PoseResult:
+    """Pose of one object. ``env_from_object``: 4×4 float64 mapping object-model points
+    (metres) into the environment frame. ``equivalent_poses``: other poses that fit equally
+    well by symmetry (continuous symmetry: 8 samples per discrete element; the axis is
+    ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
+    "colour", "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
+    ``alternatives``: the other refined hypotheses as (fine score, env_from_object), best
+    first — for a caller whose re-projection check rejects the chosen pose."""
+
+    env_from_object: Mat4
+    fitness: float
+    inlier_rmse_m: float
+    inlier_distance_m: float
+    score: float
+    runner_up_score: float
+    cluster_coverage: float | None
+    verified: bool
+    rejections: tuple[str, ...]
+    ambiguous: bool
+    equivalent_poses: tuple[Mat4, ...]
+    symmetry_axis_env: NDArray[np.float64] | None
+    symmetry_origin_env: NDArray[np.float64] | None
+    chosen_by: str
+    source: str
+    trials: tuple[Trial, ...]
+    n_scene_points: int
+    alternatives: tuple[tuple[float, Mat4], ...] = ()
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def quality_json(self) -> dict[str, Any]:
+        """The ``pose_quality`` object of the comparison contract."""
+        return {
+            "fitness": self.fitness,
+            "inlier_rmse": self.inlier_rmse_m,
+            "verified": self.verified,
+            "ambiguous": self.ambiguous,
+            "equivalent_poses": [p.tolist() for p in self.equivalent_poses],
+        }

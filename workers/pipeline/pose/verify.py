@@ -1,0 +1,174 @@
+"""Step 4 of pose estimation: verification of a pose, in 3D and against the detector's boxes.
+
+In 3D (:func:`verify_fit`): ``fitness`` (share of model points with a scene point within the
+inlier distance), inlier RMSE, the share of cluster points explained by the posed model, and
+the score of the best *distinct* alternative; ``verified`` needs all of them within the
+:class:`~workers.pipeline.pose.options.PoseOptions` thresholds.
+
+By re-projection (:func:`reprojection_check`): the posed model is projected into every image of
+the capture that saw it, keeping the model points the capture's own depth says are visible,
+and the box of those pixels is compared with the detector's boxes of the object's class: a
+right pose lands on the detections (IoU near 1), a wrong one does not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from workers.pipeline.compare.data import Camera, FloatArray
+from workers.pipeline.compare.identify import iou_matrix, yolo_to_boxes
+from workers.pipeline.compare.visibility import DepthMap, box_from_pixels, visible_points
+from workers.pipeline.geometry import Points, as_mat4, as_points, transform_points
+from workers.pipeline.pose.options import PoseOptions
+from workers.pipeline.pose.refine import Refinement
+
+#: the rejection a near-tie in 3D gets; the caller may settle it with 2D evidence
+RUNNER_UP_REASON = "a distinct pose scores"
+
+
+@dataclass(frozen=True)
+class FitVerification:
+    """The 3D verification of one pose: ``cluster_coverage`` (None without cluster points)
+    and the ``rejections`` (empty: verified)."""
+
+    cluster_coverage: float | None
+    rejections: tuple[str, ...]
+
+    @property
+    def verified(self) -> bool:
+        """True when nothing rejects the pose."""
+        return not self.rejections
+
+
+def cluster_coverage(cluster: Points, posed_model: Points, v: float, o: PoseOptions) -> float:
+    """Share of (K, 3) cluster points within a noise-scaled tolerance of the (N, 3) posed
+    model points: 3σ of the cluster's own scatter about the model (σ = 1.4826 × the median
+    distance), clipped to ``coverage_voxels·v`` … ``max_coverage_voxels·v`` and
+    ``max_inlier_distance_m`` — a reconstructed cloud scatters 2-4 mm about the true
+    surface, and a cluster that includes something else leaves it uncovered by centimetres."""
+    hi = min(o.max_coverage_voxels * v, o.max_inlier_distance_m)
+    d, _ = cKDTree(posed_model).query(cluster, distance_upper_bound=hi)
+    d_med = float(np.median(np.where(np.isfinite(d), d, hi)))
+    tol = float(np.clip(3.0 * 1.4826 * d_med, min(o.coverage_voxels * v, hi), hi))
+    return float(np.mean(d <= tol))
+
+
+def verify_fit(
+    fit: Refinement, model_points: Points, cluster: Points | None, v: float, o: PoseOptions
+) -> FitVerification:
+    """Step 4: reject the refined pose when ``fitness < min_fitness``, the inlier RMSE exceeds
+    ``max_rmse_voxels·v`` (at most 0.6 × ``max_inlier_distance_m``), a distinct pose scores
+    above ``max_runner_up_ratio`` × the best (two poses that explain the data about equally
+    well are not a verified pose), or the cluster coverage is below
+    ``min_cluster_coverage``. ``model_points``: (N, 3) object frame; ``cluster``: (K, 3)
+    environment frame or None."""
+    coverage: float | None = None
+    if cluster is not None:
+        posed = transform_points(fit.env_from_object, model_points)
+        coverage = cluster_coverage(cluster, posed, v, o)
+    fitness, rmse = fit.fitness, fit.inlier_rmse_m
+    rejections: list[str] = []
+    if fitness < o.min_fitness:
+        rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
+    max_rmse = min(o.max_rmse_voxels * v, 0.6 * o.max_inlier_distance_m)
+    if rmse > max_rmse or fitness == 0.0:
+        rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {max_rmse * 1000:.1f} mm")
+    if fit.runner_up > o.max_runner_up_ratio * fit.score:
+        ratio = fit.runner_up / fit.score
+        rejections.append(f"{RUNNER_UP_REASON} {ratio:.2f} of the best (> {o.max_runner_up_ratio})")
+    if coverage is not None and coverage < o.min_cluster_coverage:
+        rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
+    return FitVerification(coverage, tuple(rejections))
+
+
+@dataclass(frozen=True)
+class ReprojectionOptions:
+    """Thresholds of the re-projection check: ``min_iou`` mean IoU over at least
+    ``min_views`` views; a view counts when ≥ ``min_pixels`` model points are visible in it,
+    a point being visible within ``tol_m`` metres of the capture's depth."""
+
+    min_iou: float = 0.5
+    min_views: int = 2
+    min_pixels: int = 20
+    tol_m: float = 0.02
+
+
+@dataclass(frozen=True)
+class ReprojectionCheck:
+    """``mean_iou`` over the views where the posed model is visible (≥ ``min_pixels``
+    projected points) and the class was detected; ``views`` how many such views;
+    ``visible_views`` views where the model is visible at all; ``passed`` whether
+    ``mean_iou`` ≥ the threshold over ≥ ``min_views`` views."""
+
+    mean_iou: float
+    views: int
+    visible_views: int
+    passed: bool
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "mean_iou": round(self.mean_iou, 4),
+            "views": self.views,
+            "visible_views": self.visible_views,
+            "passed": self.passed,
+        }
+
+
+def _view_iou(
+    camera: Camera, detections: FloatArray | None, class_id: int, uv_visible: FloatArray
+) -> float | None:
+    """Best IoU of the box of the visible projected model pixels (P, 2) with the YOLO rows
+    of ``class_id`` in one view; None when the class was not detected there."""
+    if detections is None or len(detections) == 0:
+        return None
+    boxes, ids = yolo_to_boxes(
+        np.asarray(detections, dtype=np.float64), camera.width, camera.height
+    )
+    boxes = boxes[ids == class_id]
+    if len(boxes) == 0:
+        return None
+    model_box = box_from_pixels(uv_visible, percentile=1.0)[None, :]
+    return float(iou_matrix(model_box, boxes).max())
+
+
+def reprojection_check(
+    model_points_object: FloatArray,
+    env_from_object: FloatArray,
+    class_id: int,
+    cameras: Sequence[Camera],
+    detections: Mapping[str, FloatArray],
+    depth_maps: Sequence[DepthMap] | None = None,
+    options: ReprojectionOptions = ReprojectionOptions(),
+) -> ReprojectionCheck:
+    """Project (N, 3) model points (object frame, metres) posed by the 4×4 ``env_from_object``
+    into ``cameras`` (optionally occlusion-tested against the capture's ``depth_maps``, one
+    per camera) and score their boxes against the YOLO rows of ``class_id``. ValueError when
+    ``depth_maps`` is not one map per camera."""
+    points_env = transform_points(
+        as_mat4(env_from_object, "env_from_object"), as_points(model_points_object)
+    )
+    if depth_maps is not None and len(depth_maps) != len(cameras):
+        raise ValueError("depth_maps must have one map per camera")
+    ious: list[float] = []
+    visible_views = 0
+    for i, camera in enumerate(cameras):
+        depth = depth_maps[i] if depth_maps is not None else None
+        uv, visible = visible_points(camera, points_env, depth, tol_m=options.tol_m)
+        if int(visible.sum()) < options.min_pixels:
+            continue
+        visible_views += 1
+        iou = _view_iou(camera, detections.get(camera.name), class_id, uv[visible])
+        if iou is not None:
+            ious.append(iou)
+    mean_iou = float(np.mean(ious)) if ious else 0.0
+    return ReprojectionCheck(
+        mean_iou=mean_iou,
+        views=len(ious),
+        visible_views=visible_views,
+        passed=len(ious) >= options.min_views and mean_iou >= options.min_iou,
+    )

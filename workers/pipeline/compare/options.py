@@ -32,7 +32,7 @@ class ThresholdSpec:
       to the nearest sample is sqrt(ln 20 / ln 2) ≈ 2.08 × the median NN spacing.
     """
 
-    # "mean_std", "fixed" or "lod" (see above)
+    # "mean_std", "fixed" or "lod" (see the class docstring)
     kind: ThresholdKind = "mean_std"
     # mean_std: standard deviations above the mean; lower to catch smaller changes
     k: float = 1.0
@@ -150,6 +150,7 @@ class CompareOptions:
     min_seen_views: int = 2
     # share of an unidentified added cluster's points that must be seen as empty
     min_seen_fraction: float = 0.5
+    # reporting
     # smallest unidentified cluster reported as a change, points (~5 × 5 cm at 2.5 mm spacing)
     unidentified_min_points: int = 300
     # merging
@@ -172,6 +173,7 @@ class CompareOptions:
     instance_match_factor: float = 1.0
     # smallest reach of that match, metres (instance_match_factor × diameter if larger)
     instance_match_min: float = 0.25
+    # randomness
     # seed of every sample the stage draws (z-buffer points, spacing and statistics samples)
     seed: int = 0
 

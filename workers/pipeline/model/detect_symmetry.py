@@ -23,23 +23,32 @@ DEDUPE_DEG = 30.0
 @dataclass(frozen=True)
 class SymmetryOptions:
     """Thresholds of symmetry detection, in units of the sampling spacing ``d0`` (mean
-    distance from a sample to its nearest other sample).
+    distance from a sample to its nearest other sample); a perfectly symmetric surface
+    gives a mean ratio of about 0.5 (scan figures: docs/decisions/pose.md)."""
 
-    A perfectly symmetric surface gives a mean ratio of about 0.5; YCB scans give 0.5–0.8
-    for their true symmetries and > 1.3 for near misses (hammer about its handle).
-    """
-
+    # surface samples scored per candidate rotation; raise for detailed objects, costs time
     n_eval: int = 1500
+    # largest mean nearest-neighbour ratio of a symmetry, × d0; raise for noisy scans
     max_mean_ratio: float = 1.0
+    # a rotated sample farther than this, × d0, is off the surface
     far_ratio: float = 3.0
+    # largest share of rotated samples off the surface for a symmetry
     max_far_fraction: float = 0.02
+    # coarse mean ratio, × d0, a candidate must beat before ICP refinement
     coarse_ratio: float = 3.0
+    # principal moments closer than this (relative) make their axes' plane degenerate
     degenerate_gap: float = 0.1
+    # angles, degrees, that must all be symmetries for an axis to count as continuous
     continuous_angles_deg: tuple[float, ...] = (23.0, 45.0, 67.0, 90.0, 131.0, 180.0, 247.0)
+    # colour mismatch ratio above which colour breaks a symmetry (a label)
     colour_ratio: float = 1.8
+    # largest discrete group closed from the accepted rotations
     max_group: int = 24
+    # most candidate rotations refined by ICP, best coarse ratio first
     max_refinements: int = 40
+    # largest refined mean ratio, × d0, of a near-symmetry (tried by pose estimation)
     near_ratio: float = 3.0
+    # seed of the sample choice; detection is deterministic for a seed
     seed: int = 0
 
 

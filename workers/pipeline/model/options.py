@@ -11,25 +11,23 @@ UNITS_TO_M: dict[str, float] = {"m": 1.0, "cm": 0.01, "mm": 0.001}
 
 @dataclass(frozen=True)
 class ModelOptions:
-    """How a library object is sampled and described.
+    """How a library object is sampled and described."""
 
-    ``n_points``: size of the model cloud sampled from a mesh (clouds are thinned to about
-    this many points). ``sampling``: ``"poisson"`` (blue-noise sample elimination over a
-    5× uniform sample, even spacing) or ``"uniform"`` (area-weighted random). ``voxel_divisor``:
-    the feature voxel is ``diameter / voxel_divisor``; FPFH uses a normal radius of
-    ``normal_radius_voxels`` and a feature radius of ``feature_radius_voxels`` voxels.
-    ``feature_views``: besides whole-model FPFH, descriptors of the part visible from this
-    many viewpoints (hidden-point removal) are stored, so that a one-sided scan finds
-    matching descriptors. ``seed`` makes sampling reproducible.
-    """
-
+    # size of the model cloud sampled from a mesh (a cloud is thinned to about this many)
     n_points: int = 6000
+    # "poisson" (even blue-noise spacing) or "uniform" (area-weighted random, faster)
     sampling: str = "poisson"
+    # feature voxel = diameter / this; raise for finer descriptors, costs time
     voxel_divisor: float = 25.0
+    # FPFH normal radius, voxels
     normal_radius_voxels: float = 2.0
+    # FPFH feature radius, voxels
     feature_radius_voxels: float = 5.0
+    # viewpoints whose visible part gets its own descriptors (one-sided scans match them)
     feature_views: int = 12
+    # seed of the sampling; preparation is reproducible for a seed
     seed: int = 0
+    # how symmetries are detected
     symmetry: SymmetryOptions = field(default_factory=SymmetryOptions)
 
 

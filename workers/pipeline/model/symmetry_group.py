@@ -138,6 +138,24 @@ def spec_from_json(raw: Any) -> SymmetrySpec:
     return SymmetrySpec("continuous", tuple(rots), axis / norm, origin, brk)
 
 
+def spec_from_ground_truth(raw: Any) -> SymmetrySpec:
+    """The spec of a generated scene's ground truth (``ground_truth.json``, written by
+    :mod:`workers.pipeline.synth`), whose symmetry is None, ``{"kind": "continuous", "axis",
+    "point"}`` or ``{"kind": "discrete", "transforms": [4×4, ...]}`` (identity implied):
+    renamed to this module's format (``origin``, ``rotations``) here, the one place that
+    spelling is read, then checked by :func:`spec_from_json`."""
+    if raw is None:
+        return NO_SYMMETRY
+    if not isinstance(raw, dict):
+        raise InputError(f"ground-truth symmetry must be an object or null, got {raw!r:.200}")
+    spec = {k: v for k, v in raw.items() if k not in {"point", "transforms"}}
+    if "point" in raw:
+        spec.setdefault("origin", raw["point"])
+    if "transforms" in raw:
+        spec.setdefault("rotations", [np.eye(4).tolist(), *raw["transforms"]])
+    return spec_from_json(spec)
+
+
 def spec_to_json(spec: SymmetrySpec) -> dict[str, Any]:
     """JSON form of a spec (inverse of :func:`spec_from_json`)."""
     out: dict[str, Any] = {"kind": spec.kind}

@@ -19,57 +19,57 @@ from workers.pipeline.errors import InputError
 class PoseOptions:
     """Pose estimation settings (one line each: meaning, unit, when to change it)."""
 
-    #: crop radius around the cluster, × model diameter; raise when clusters are far off-centre
+    # crop radius around the cluster, × model diameter; raise when clusters are far off-centre
     crop_factor: float = 0.7
-    #: RANSAC seeds per round; raise for hard views (clutter, little overlap), costs time
+    # RANSAC seeds per round; raise for hard views (clutter, little overlap), costs time
     n_seeds: int = 5
-    #: seeds always run per round before stopping early when two starts agree; lower is faster
+    # seeds always run per round before stopping early when two starts agree; lower is faster
     min_seeds: int = 2
-    #: RANSAC iterations per seed; raise when good matches are rare (little overlap)
+    # RANSAC iterations per seed; raise when good matches are rare (little overlap)
     ransac_max_iterations: int = 20000
-    #: RANSAC early-stop confidence in [0, 1]; rarely changed
+    # RANSAC early-stop confidence in [0, 1]; rarely changed
     ransac_confidence: float = 0.999
-    #: RANSAC inlier distance, voxels; raise for noisy scans
+    # RANSAC inlier distance, voxels; raise for noisy scans
     ransac_distance_voxels: float = 1.5
-    #: RANSAC edge-length similarity check in (0, 1]; lower accepts more distorted matches
+    # RANSAC edge-length similarity check in (0, 1]; lower accepts more distorted matches
     edge_length_check: float = 0.9
-    #: truncation distance of the candidate score, voxels; rarely changed
+    # truncation distance of the candidate score, voxels; rarely changed
     score_voxels: float = 0.5
-    #: distinct candidates refined per round; raise when the right pose ranks low coarsely
+    # distinct candidates refined per round; raise when the right pose ranks low coarsely
     n_refine: int = 3
-    #: best candidates also tried turned 180° and by near-symmetries; raise for elongated objects
+    # best candidates also tried turned 180° and by near-symmetries; raise for elongated objects
     n_flip_bases: int = 2
-    #: rounds of new seeds while the pose is not verified; raise for hard views, costs time
+    # rounds of new seeds while the pose is not verified; raise for hard views, costs time
     max_rounds: int = 2
-    #: truncation distance of the refined score, voxels; lower separates near-symmetric poses
+    # truncation distance of the refined score, voxels; lower separates near-symmetric poses
     fine_score_voxels: float = 0.3
-    #: ICP distance scales, voxels, coarse to fine; the first two also polish every candidate
+    # ICP distance scales, voxels, coarse to fine; the first two also polish every candidate
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
-    #: ICP iterations per scale of the refinement; raise if refinement has not converged
+    # ICP iterations per scale of the refinement; raise if refinement has not converged
     icp_max_iterations: int = 20
-    #: inlier distance of ``fitness``, voxels (capped by ``max_inlier_distance_m``)
+    # inlier distance of ``fitness``, voxels (capped by ``max_inlier_distance_m``)
     inlier_voxels: float = 0.5
-    #: cap on every inlier distance, metres: the scan's noise, not the object's size
+    # cap on every inlier distance, metres: the scan's noise, not the object's size
     max_inlier_distance_m: float = 0.01
-    #: least share of model points near the scene for ``verified``; one view sees 30-60 %
+    # least share of model points near the scene for ``verified``; one view sees 30-60 %
     min_fitness: float = 0.25
-    #: largest inlier RMSE for ``verified``, voxels (and at most 0.6 × max_inlier_distance_m)
+    # largest inlier RMSE for ``verified``, voxels (and at most 0.6 × max_inlier_distance_m)
     max_rmse_voxels: float = 0.3
-    #: least tolerance of cluster coverage, voxels (3σ of the cluster's scatter, clipped)
+    # least tolerance of cluster coverage, voxels (3σ of the cluster's scatter, clipped)
     coverage_voxels: float = 0.5
-    #: largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)
+    # largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)
     max_coverage_voxels: float = 1.5
-    #: least share of cluster points the posed model explains for ``verified``
+    # least share of cluster points the posed model explains for ``verified``
     min_cluster_coverage: float = 0.85
-    #: colour correlation margin that picks a symmetric object's equivalent pose (a label)
+    # colour correlation margin that picks a symmetric object's equivalent pose (a label)
     colour_margin: float = 0.1
-    #: support-plane band, voxels (≤ max_inlier_distance_m): removed, penalised below; 0 = off
+    # support-plane band, voxels (≤ max_inlier_distance_m): removed, penalised below; 0 = off
     support_band_voxels: float = 0.5
-    #: a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
+    # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
     max_sink_m: float = 0.01
-    #: a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
+    # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85
-    #: seed of RANSAC and the support-plane search; results are deterministic for a seed
+    # seed of RANSAC and the support-plane search; results are deterministic for a seed
     seed: int = 0
 
 

@@ -36,6 +36,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from app.formats.cameras import load_cameras_file  # noqa: E402 (stdlib only)
+
 
 def _source_function(path: Path, name: str, namespace: dict[str, Any]) -> Any:
     """The module-level function ``name`` of ``path``, executed alone in ``namespace``."""
@@ -91,10 +93,10 @@ def run(args: argparse.Namespace) -> None:
     colmap_dense = _source_function(pipeline / "fusion.py", "colmap_dense", dict(ns))
     ns["fusion"] = SimpleNamespace(colmap_dense=colmap_dense)
     cuda_dense = _source_function(pipeline / "stage.py", "_cuda_dense", ns)
-    cams = json.loads(args.cameras.read_text())["images"]
+    poses = load_cameras_file(args.cameras).poses
     views = [
-        SimpleNamespace(name=name, centre=np.asarray(c["env_from_cam"], float)[:3, 3])
-        for name, c in sorted(cams.items())
+        SimpleNamespace(name=name, centre=np.asarray(m, float)[:3, 3])
+        for name, m in sorted(poses.items())
     ]
     work = Path(args.work)
     shutil.rmtree(work, ignore_errors=True)

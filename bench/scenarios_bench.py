@@ -46,13 +46,14 @@ from bench.reconstruct_bench import (
 )
 from workers.demo.evaluate import match_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.files import cameras_from_file, read_cameras_file
 from workers.pipeline.compare.identify import identify, yolo_to_boxes
 from workers.pipeline.compare.options import options_from_json
 from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model import PreparedModel, prepare_model
-from workers.pipeline.pose.posing import cameras_from_json, pose_changes
+from workers.pipeline.pose.posing import pose_changes
 from workers.pipeline.reconstruct import options_from_preset, parse_cameras, reconstruct
 from workers.pipeline.reconstruct.fusion import read_ply
 from workers.pipeline.synth import (
@@ -161,7 +162,7 @@ def capture_quality(scene_dir: Path, capture: str, recon: Path) -> dict[str, Any
     meshes = load_true_surfaces(scene_dir, capture)
     cloud, _ = read_ply(recon / "cloud.ply")
     visible = visible_surface_samples(meshes, cams)
-    views = cameras_from_json(json.loads((recon / "cameras.json").read_text())["images"])
+    views = cameras_from_file(read_cameras_file(recon / "cameras.json"))
 
     class _View:  # camera_metrics wants .name and .env_from_cam
         def __init__(self, name: str, env_from_cam: np.ndarray) -> None:
@@ -188,7 +189,7 @@ def capture_data(scene_dir: Path, capture: str, recon: Path, quality: dict[str, 
         detections[image] = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
     return CaptureData(
         points_env=np.asarray(cloud.points, dtype=np.float64),
-        cameras=cameras_from_json(json.loads((recon / "cameras.json").read_text())["images"]),
+        cameras=cameras_from_file(read_cameras_file(recon / "cameras.json")),
         detections=detections,
         colors=np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
         alignment_residual_m=float(quality.get("alignment_residual_m") or 0.0),

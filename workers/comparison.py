@@ -5,7 +5,6 @@ update (app.core.twin.advance, in seq order) in one transaction."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,12 +18,13 @@ from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, ObjectState
 from app.core.models import Change, SnapshotImage, utcnow
 from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.files import cameras_from_file, read_cameras_file
 from workers.pipeline.compare.options import options_from_json
 from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.model import load_prepared
-from workers.pipeline.pose.posing import cameras_from_json, pose_changes
+from workers.pipeline.pose.posing import pose_changes
 from workers.progress import weighted
 from workers.runner import JobContext, run_job
 
@@ -129,10 +129,10 @@ def _at(centroid: list[float] | None) -> list[list[float]]:
 
 def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
     cloud = o3d.io.read_point_cloud(ctx.storage.path(files.cloud_key))
-    cameras_json = json.loads(ctx.storage.path(files.cameras_key).read_text())["images"]
+    cameras = read_cameras_file(ctx.storage.path(files.cameras_key))
     return CaptureData(
         points_env=np.asarray(cloud.points, dtype=np.float64),
-        cameras=cameras_from_json(cameras_json),
+        cameras=cameras_from_file(cameras, files.cameras_key),
         detections={
             name: np.asarray(rows, dtype=np.float64).reshape(-1, 6)
             for name, rows in files.detections.items()

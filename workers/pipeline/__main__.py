@@ -11,12 +11,12 @@ import sys
 
 STAGES: dict[str, str] = {
     "synth": "workers.pipeline.synth.cli",
-    "ingest": "workers.pipeline.ingest",
     "reconstruct": "workers.pipeline.reconstruct.cli",
     "compare": "workers.pipeline.compare.cli",
     "pose": "workers.pipeline.pose.cli",
     "model": "workers.pipeline.model.cli",
     "option-schema": "workers.pipeline.option_schema",
+    "option-docs": "workers.pipeline.option_docs",
 }
 
 

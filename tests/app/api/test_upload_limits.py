@@ -265,7 +265,7 @@ def staged_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     from app.core import ingest
 
     sizes: list[int] = []
-    real = ingest._stage_file
+    real = ingest.staging._stage_file
 
     def counting(staging: Any, kind: str, name: str, where: str, source: Any) -> Any:
         target = staging.root / kind / name if kind else staging.root / name
@@ -275,7 +275,7 @@ def staged_bytes(monkeypatch: pytest.MonkeyPatch) -> list[int]:
             sizes.append(target.stat().st_size if target.exists() else 0)
         return staged
 
-    monkeypatch.setattr(ingest, "_stage_file", counting)
+    monkeypatch.setattr(ingest.staging, "_stage_file", counting)
     return sizes
 
 

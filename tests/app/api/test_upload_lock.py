@@ -49,7 +49,7 @@ def test_upload_validation_does_not_hold_the_write_lock(
         _, token = auth.create_key(s, "admin", ["admin"])
     headers = {"Authorization": f"Bearer {token}"}
     waits: list[float | str] = []
-    real_validate = ingest._validate
+    real_validate = ingest.upload._validate
 
     def validate_while_another_process_writes(*args: Any, **kwargs: Any) -> Any:
         # What a concurrent POST /v1/keys from another connection does: take the write lock.
@@ -65,7 +65,7 @@ def test_upload_validation_does_not_hold_the_write_lock(
             other.close()
         return real_validate(*args, **kwargs)
 
-    monkeypatch.setattr(ingest, "_validate", validate_while_another_process_writes)
+    monkeypatch.setattr(ingest.upload, "_validate", validate_while_another_process_writes)
     with TestClient(create_app()) as client:
         env = client.post(
             "/v1/environments", json={"name": "l", "classes": CLASSES}, headers=headers

@@ -52,9 +52,11 @@ def store(
         storage,
         get_settings(),
         env_id,
-        images=parts(files, (".jpg", ".png")),
-        detections=parts(files, (".txt",)),
-        cameras=ingest.UploadPart("cameras.json", io.BytesIO(cameras)) if cameras else None,
+        ingest.UploadFiles(
+            images=parts(files, (".jpg", ".png")),
+            detections=parts(files, (".txt",)),
+            cameras=ingest.UploadPart("cameras.json", io.BytesIO(cameras)) if cameras else None,
+        ),
         idempotency_key=key,
     )
 
@@ -149,15 +151,15 @@ def test_idempotency_race_returns_the_winner(
     """A concurrent identical request that commits while this one validates wins; this one
     returns its snapshot and job and stores nothing of its own."""
     files = capture()
-    validate = ingest._validate
+    validate = ingest.upload._validate
     winner: list[ingest.Ingested] = []
 
     def racing_validate(staging: Any, classes: Any) -> Any:
-        monkeypatch.setattr(ingest, "_validate", validate)
+        monkeypatch.setattr(ingest.upload, "_validate", validate)
         winner.append(store(session, storage, env_id, files, key="k"))
         return validate(staging, classes)
 
-    monkeypatch.setattr(ingest, "_validate", racing_validate)
+    monkeypatch.setattr(ingest.upload, "_validate", racing_validate)
     loser = store(session, storage, env_id, files, key="k")
     assert loser.created is False and winner[0].created is True
     assert loser.snapshot.id == winner[0].snapshot.id and loser.job.id == winner[0].job.id

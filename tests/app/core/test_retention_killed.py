@@ -35,9 +35,9 @@ r, w = os.pipe()
 os.write(w, b"\\xff\\xd8\\xff\\xe0" + b"\\0" * 1000)  # a photo that never finishes arriving
 part = ingest.UploadPart("a.jpg", os.fdopen(r, "rb", buffering=0))
 with db.transaction() as session:
-    ingest.create_snapshot(
-        session, LocalStorage(settings.resolved_storage_dir), settings, sys.argv[1], images=[part]
-    )
+    storage = LocalStorage(settings.resolved_storage_dir)
+    files = ingest.UploadFiles(images=[part])
+    ingest.create_snapshot(session, storage, settings, sys.argv[1], files)
 """
 
 WORKER = """

@@ -9,7 +9,7 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from tests.workers.pipeline.test_compare_scene import (
+from tests.workers.pipeline.compare_scene import (
     CLASSES,
     DIAMETERS,
     bin_,
@@ -89,5 +89,5 @@ def test_cli_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert "classes.txt" in capsys.readouterr().err
     bad = tmp_path / "bad.txt"
     bad.write_text("0 0.5 0.5 0.1 0.1\n0 0.5 0.5 1.5 0.1\n")
-    with pytest.raises(InputError, match=r"bad.txt:2"):
+    with pytest.raises(InputError, match=r"bad.txt line 2: w = 1.5 is outside 0..1"):
         load_labels(bad)

@@ -1,6 +1,8 @@
 """``python -m workers.pipeline compare BEFORE_DIR AFTER_DIR [options]``.
 
-Reads two capture folders (see files.py), compares them and writes the comparison JSON
+Reads two capture folders (see files.py; a ``reconstruct`` output folder is one, with
+``--before-labels``/``--after-labels`` and ``--classes`` pointing at the captures' YOLO
+files), compares them and writes the comparison JSON
 (docs/contract.md "A comparison", without the service's ids) to ``--out`` or stdout, and the
 changed points of each cluster to ``--clusters-dir`` as ``cluster_<id>_<side>.npy`` when
 asked. Exit codes: 0 ok, 2 bad input, 3 comparison failed.
@@ -26,6 +28,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("before", type=Path, help="capture folder of the earlier snapshot")
     p.add_argument("after", type=Path, help="capture folder of the later snapshot")
     p.add_argument("--classes", type=Path, help="classes.txt (default: AFTER/classes.txt)")
+    p.add_argument("--before-labels", type=Path, help="YOLO labels (default: BEFORE/labels)")
+    p.add_argument("--after-labels", type=Path, help="YOLO labels (default: AFTER/labels)")
     p.add_argument("--diameters", type=Path, help='JSON {"class": diameter_m}')
     p.add_argument("--twin", type=Path, help="twin state JSON (list of instances)")
     p.add_argument("--preset", default="default", choices=sorted(PRESETS))
@@ -54,7 +58,8 @@ def cli(argv: list[str]) -> int:
             }
         twin = load_twin(args.twin) if args.twin else []
         options = options_from_json(args.preset, json.loads(args.options))
-        before, after = load_capture(args.before), load_capture(args.after)
+        before = load_capture(args.before, args.before_labels)
+        after = load_capture(args.after, args.after_labels)
 
         def progress(stage: str, fraction: float) -> None:
             if not args.quiet:

@@ -2,11 +2,11 @@
 
 A capture folder holds:
 - ``cloud.ply``: the snapshot's point cloud, environment frame, metres (colours optional);
-- ``cameras.json``: docs/contract.md's format, ``{"intrinsics": {"model", "width", "height",
-  "params"}}`` or ``{"intrinsics_per_image": {name: {...}}}`` and ``{"poses": {name: 4×4
-  env_from_cam}}``; models PINHOLE, SIMPLE_PINHOLE, SIMPLE_RADIAL, OPENCV (distortion
-  parameters are ignored: images are taken as undistorted);
-- ``labels/<image stem>.txt``: YOLO detections, ``class cx cy w h [conf]`` normalised;
+- ``cameras.json``: the one format (:mod:`app.formats.cameras`; what ``reconstruct``
+  writes), intrinsics and ``poses`` (4×4 env_from_cam) by image name; only posed images
+  count; distortion parameters are ignored (images are taken as undistorted);
+- ``labels/<image stem>.txt``: YOLO detections (:mod:`app.formats.yolo`), ``class cx cy w h
+  [conf]`` normalised;
 - ``classes.txt`` (optional here): one class name per line, line i = class id i;
 - ``alignment.json`` (optional): ``{"residual_m": float}``.
 Every function raises InputError naming the file (and line) at fault.
@@ -16,73 +16,75 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from app.formats import FormatError
+from app.formats.cameras import (
+    CamerasFile,
+    from_reconstruction_images,
+    is_reconstruction_images,
+    read_cameras,
+)
+from app.formats.yolo import read_yolo
 from workers.pipeline.compare.data import Camera, CaptureData, TwinInstance
-from workers.pipeline.errors import InputError, PipelineError
-from workers.pipeline.geometry import invert_rigid
+from workers.pipeline.errors import InputError
 
 
-def intrinsics_matrix(spec: dict[str, Any], where: str) -> tuple[NDArray[np.float64], int, int]:
-    """(K (3, 3), width, height) from a cameras.json intrinsics object."""
+def cameras_from_file(cameras: CamerasFile, where: str = "cameras.json") -> tuple[Camera, ...]:
+    """The posed cameras of a cameras.json (images without a pose are skipped), sorted by
+    name: K (3, 3) from the pinhole part of the params (distortion ignored: images are taken
+    as undistorted) and ``cam_from_env`` the inverse of its ``env_from_cam``."""
+    cams = []
+    for name in sorted(cameras.poses):
+        camera = cameras.camera_for(name)
+        if camera is None:
+            raise InputError(f"{where}: no intrinsics for image {name!r}")
+        fx, fy, cx, cy = camera.pinhole
+        k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        env_from_cam = np.asarray(cameras.poses[name], dtype=np.float64)
+        cam_from_env = np.asarray(np.linalg.inv(env_from_cam), dtype=np.float64)
+        cams.append(Camera(name, k, camera.width, camera.height, cam_from_env))
+    return tuple(cams)
+
+
+def read_cameras_file(path: Path) -> CamerasFile:
+    """A cameras.json in the one format (:mod:`app.formats.cameras`), or as ``reconstruct``
+    wrote it before (``{"images": ...}``, kept for stored snapshots); InputError naming the
+    field otherwise."""
     try:
-        model = str(spec["model"]).upper()
-        w, h = int(spec["width"]), int(spec["height"])
-        p = [float(x) for x in spec["params"]]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{where}: intrinsics need model, width, height, params") from exc
-    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL") and len(p) >= 3:
-        fx = fy = p[0]
-        cx, cy = p[1], p[2]
-    elif model in ("PINHOLE", "OPENCV") and len(p) >= 4:
-        fx, fy, cx, cy = p[:4]
-    else:
-        raise InputError(f"{where}: unsupported camera model {model!r} with {len(p)} params")
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), w, h
+        doc = json.loads(Path(path).read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read JSON ({exc})") from exc
+    try:
+        if is_reconstruction_images(doc):
+            return from_reconstruction_images(doc, str(path))
+        return read_cameras(doc, str(path))
+    except FormatError as exc:
+        raise InputError(str(exc)) from exc
 
 
 def load_cameras(path: Path) -> list[Camera]:
     """Cameras with poses from a cameras.json (images without a pose are skipped)."""
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read JSON ({exc})") from exc
-    poses = doc.get("poses") or {}
-    per_image = doc.get("intrinsics_per_image") or {}
-    shared = doc.get("intrinsics")
-    cams = []
-    for name in sorted(poses):
-        spec = per_image.get(name, shared)
-        if spec is None:
-            raise InputError(f"{path}: no intrinsics for image {name!r}")
-        k, w, h = intrinsics_matrix(spec, f"{path} [{name}]")
-        try:
-            cam_from_env = invert_rigid(np.asarray(poses[name], dtype=np.float64))
-            cams.append(Camera(name, k, w, h, cam_from_env))
-        except (PipelineError, ValueError) as exc:
-            raise InputError(f"{path} [{name}]: bad pose ({exc})") from exc
-    return cams
+    return list(cameras_from_file(read_cameras_file(path), str(path)))
 
 
 def load_labels(path: Path) -> NDArray[np.float64]:
-    """(M, 6) YOLO rows of one label file; InputError with the line number on a bad line."""
-    rows = []
-    for i, line in enumerate(path.read_text().splitlines(), start=1):
-        if not line.strip():
-            continue
-        parts = line.split()
-        try:
-            vals = [float(x) for x in parts]
-        except ValueError as exc:
-            raise InputError(f"{path}:{i}: not numbers: {line!r}") from exc
-        if len(vals) not in (5, 6) or vals[0] < 0 or vals[0] != int(vals[0]):
-            raise InputError(f"{path}:{i}: expected 'class cx cy w h [conf]', got {line!r}")
-        if not all(0.0 <= v <= 1.0 for v in vals[1:5]):
-            raise InputError(f"{path}:{i}: coordinates must be normalised to 0..1")
-        rows.append(vals if len(vals) == 6 else [*vals, 1.0])
+    """(M, 6) rows ``class cx cy w h confidence`` of one YOLO label file
+    (:mod:`app.formats.yolo`; confidence 1 when absent); InputError with the line number
+    on a bad line."""
+    try:
+        with Path(path).open("rb") as fh:
+            boxes = read_yolo(fh, str(path))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read labels ({exc})") from exc
+    except FormatError as exc:
+        raise InputError(str(exc)) from exc
+    rows = [
+        [b.class_id, b.cx, b.cy, b.w, b.h, 1.0 if b.confidence is None else b.confidence]
+        for b in boxes
+    ]
     return np.array(rows, dtype=np.float64).reshape(-1, 6)
 
 
@@ -100,11 +102,13 @@ def load_cloud(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | N
     return pts, colors
 
 
-def load_capture(folder: Path) -> CaptureData:
-    """A :class:`CaptureData` from a capture folder (see module docstring)."""
+def load_capture(folder: Path, labels_dir: Path | None = None) -> CaptureData:
+    """A :class:`CaptureData` from a capture folder (see module docstring); the YOLO labels
+    from ``labels_dir`` when given (a reconstruct output folder has none: they stay with
+    the capture's images), else ``folder/labels``."""
     points, colors = load_cloud(folder / "cloud.ply")
     cams = load_cameras(folder / "cameras.json") if (folder / "cameras.json").is_file() else []
-    labels = folder / "labels"
+    labels = folder / "labels" if labels_dir is None else labels_dir
     dets = {}
     for cam in cams:
         f = labels / (Path(cam.name).stem + ".txt")

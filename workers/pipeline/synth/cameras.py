@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from app.formats.cameras import Camera
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, make_rigid
 from workers.pipeline.synth.options import CameraOptions, PathOptions
@@ -19,15 +20,11 @@ def intrinsics_matrix(camera: CameraOptions) -> NDArray[np.float64]:
     return np.asarray([[camera.focal_px, 0.0, cx], [0.0, camera.focal_px, cy], [0.0, 0.0, 1.0]])
 
 
-def cameras_json_intrinsics(camera: CameraOptions) -> dict[str, object]:
-    """The ``intrinsics`` object of cameras.json: PINHOLE [fx, fy, cx, cy]."""
+def cameras_json_intrinsics(camera: CameraOptions) -> Camera:
+    """The shared intrinsics of a capture's cameras.json: PINHOLE [fx, fy, cx, cy]."""
     k = intrinsics_matrix(camera)
-    return {
-        "model": "PINHOLE",
-        "width": camera.width,
-        "height": camera.height,
-        "params": [k[0, 0], k[1, 1], k[0, 2], k[1, 2]],
-    }
+    params = (float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2]))
+    return Camera("PINHOLE", camera.width, camera.height, params)
 
 
 def look_at(eye_env: NDArray[np.float64], target_env: NDArray[np.float64]) -> Mat4:

@@ -29,6 +29,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from app.formats.cameras import CamerasFile, Pose, pose_rows, write_cameras
+from app.formats.yolo import YoloBox, yolo_line
 from workers.pipeline.errors import InputError, ShapeError
 from workers.pipeline.geometry import Mat4, as_mat4
 from workers.pipeline.synth.cameras import camera_path, cameras_json_intrinsics, intrinsics_matrix
@@ -112,18 +114,20 @@ def detect(
 
 
 def yolo_lines(detections: Sequence[Detection], width: int, height: int, confidence: bool) -> str:
-    """YOLO text: ``<class> <cx> <cy> <w> <h> [<conf>]`` normalised to the image size."""
+    """YOLO text (:mod:`app.formats.yolo`): ``<class> <cx> <cy> <w> <h> [<conf>]``
+    normalised to the image size."""
     lines = []
     for det in detections:
         x0, y0, x1, y1 = det.box_px
-        fields = [
-            f"{(x0 + x1) / 2 / width:.6f}",
-            f"{(y0 + y1) / 2 / height:.6f}",
-            f"{(x1 - x0) / width:.6f}",
-            f"{(y1 - y0) / height:.6f}",
-        ]
-        conf = [f"{det.confidence:.3f}"] if confidence else []
-        lines.append(" ".join([str(det.class_id), *fields, *conf]))
+        box = YoloBox(
+            class_id=int(det.class_id),
+            cx=(x0 + x1) / 2 / width,
+            cy=(y0 + y1) / 2 / height,
+            w=(x1 - x0) / width,
+            h=(y1 - y0) / height,
+            confidence=float(det.confidence) if confidence else None,
+        )
+        lines.append(yolo_line(box))
     return "".join(line + "\n" for line in lines)
 
 
@@ -182,7 +186,7 @@ def write_capture(
     (root / "classes.txt").write_text("".join(name + "\n" for name in classes))
     class_ids = [classes.index(p.model.name) for p in scenario.capture(capture)]
     c = CAPTURES.index(capture)
-    poses: dict[str, Any] = {}
+    poses: dict[str, Pose] = {}
     for index, (name, view) in enumerate(render_capture(scenario, capture, options)):
         (root / "images" / name).write_bytes(_encode(view.image, options.look.jpeg_quality))
         rng = np.random.default_rng([scenario.seed, 4, c, index])
@@ -191,13 +195,14 @@ def write_capture(
             dets, options.camera.width, options.camera.height, options.detection.confidence
         )
         (root / "labels" / (Path(name).stem + ".txt")).write_text(text)
-        poses[name] = view.env_from_cam.tolist()
+        poses[name] = pose_rows(view.env_from_cam.tolist())
         if progress is not None:
             progress(f"render_{capture}", (index + 1) / options.path.n_views)
-    cameras: dict[str, Any] = {"intrinsics": cameras_json_intrinsics(options.camera)}
-    if options.write_poses:
-        cameras["poses"] = poses
-    (root / "cameras.json").write_text(json.dumps(cameras, indent=1))
+    cameras = CamerasFile(
+        intrinsics=cameras_json_intrinsics(options.camera),
+        poses=poses if options.write_poses else {},
+    )
+    write_cameras(root / "cameras.json", cameras)
     _remove_stale(root / "images", set(poses))
     _remove_stale(root / "labels", {Path(name).stem + ".txt" for name in poses})
 

@@ -82,25 +82,24 @@ OPTION_CLASSES: tuple[OptionClass, ...] = (
     ),
     OptionClass(
         "Pose",
-        ("workers.pipeline.pose.options", "workers.pipeline.pose.estimate"),
+        ("workers.pipeline.pose.options",),
         "PoseOptions",
         "POSE_PRESETS",
-        "Posing the changes a comparison found; `python -m workers.pipeline pose --preset NAME`.",
+        "The `pose` key of the compare options (`options.compare.pose` of an environment, or "
+        '`"pose"` in the body of `POST /v1/environments/{id}/comparisons`), '
+        '`{"preset": ..., <option>: <value>}`; or '
+        "`python -m workers.pipeline pose --preset NAME`.",
     ),
     OptionClass(
         "Model",
-        ("workers.pipeline.model.options", "workers.pipeline.model.prepare"),
+        ("workers.pipeline.model.options",),
         "ModelOptions",
         "MODEL_PRESETS",
         "Preparing a library object's model; `python -m workers.pipeline model --preset NAME`.",
     ),
     OptionClass(
         "Symmetry detection",
-        (
-            "workers.pipeline.model.options",
-            "workers.pipeline.model.detect_symmetry",
-            "workers.pipeline.model.symmetry_group",
-        ),
+        ("workers.pipeline.model.options",),
         "SymmetryOptions",
         "",
         "The model options' `symmetry`: how a library object's symmetries are detected.",

@@ -10,7 +10,7 @@ catch a wrong or unrefined pose (a RANSAC-only pose is off by about one voxel, 9
 from __future__ import annotations
 
 import json
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -435,6 +435,18 @@ def test_milk_carton_in_real_kinect_scene(
     assert result.verified, result.rejections
 
 
+@dataclass(frozen=True)
+class Outcome:
+    """One pose estimate of the 3DMatch test: errors (m, degrees), right, verified."""
+
+    case: str
+    seed: int
+    error_m: float
+    error_deg: float
+    right: bool
+    verified: bool
+
+
 def test_threedmatch_pair_verifies_only_right_poses(shared_data: Path, tmp_path: Path) -> None:
     """Real scans, three seeds each. Hard: the source scan against the reference scan (33 %
     overlap), where a wrong pose must never be flagged verified. Easy: the same reference
@@ -451,7 +463,7 @@ def test_threedmatch_pair_verifies_only_right_poses(shared_data: Path, tmp_path:
         "hard": (SceneCloud.create(ref), ref.mean(axis=0)),
         "easy": (SceneCloud.create(np.vstack([ref, placed])), placed.mean(axis=0)),
     }
-    outcomes = []
+    outcomes: list[Outcome] = []
     for case, (scene, centre) in cases.items():
         for seed in range(3):
             # one round per seed: the seeds themselves are the repetitions here
@@ -459,11 +471,11 @@ def test_threedmatch_pair_verifies_only_right_poses(shared_data: Path, tmp_path:
             result = estimate_pose(model, scene, centre_env=centre, options=options)
             dt, dr = pose_error(result.env_from_object, ref_from_src)
             right = dt < 0.10 and dr < 5.0
-            outcomes.append((case, seed, round(dt, 3), round(dr, 2), right, result.verified))
-    verified = [o for o in outcomes if o[5]]
-    assert all(o[4] for o in verified), outcomes  # every verified pose is right
+            outcomes.append(Outcome(case, seed, round(dt, 3), round(dr, 2), right, result.verified))
+    verified = [o for o in outcomes if o.verified]
+    assert all(o.right for o in verified), outcomes  # every verified pose is right
     assert len(verified) >= len(outcomes) / 2, outcomes
-    assert all(o[5] for o in outcomes if o[0] == "easy"), outcomes
+    assert all(o.verified for o in outcomes if o.case == "easy"), outcomes
 
 
 def test_pose_cli(

@@ -12,12 +12,13 @@ from workers.pipeline.pose.candidates import distinct_pose, random_rigid
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
-from workers.pipeline.pose.result import PoseResult, Trial
+from workers.pipeline.pose.result import Alternative, PoseResult, Trial
 from workers.pipeline.pose.verify import RUNNER_UP_REASON
 
 __all__ = [
     "POSE_PRESETS",
     "RUNNER_UP_REASON",
+    "Alternative",
     "PoseOptions",
     "PoseResult",
     "SceneCloud",

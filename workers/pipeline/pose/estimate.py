@@ -38,7 +38,7 @@ from workers.pipeline.pose.canonical import canonical_pose, colour_agreement
 from workers.pipeline.pose.crop import PoseInputs, SceneCloud, check_inputs, crop_scene
 from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
 from workers.pipeline.pose.refine import Refined, Refinement, Refiner
-from workers.pipeline.pose.result import PoseResult, Trial
+from workers.pipeline.pose.result import Alternative, PoseResult, Trial
 from workers.pipeline.pose.verify import FitVerification, verify_fit
 
 
@@ -135,6 +135,6 @@ def estimate_pose(
         source=fit.best.source,
         trials=rounds.trials,
         n_scene_points=region.n_points,
-        alternatives=tuple((r.score, r.env_from_object) for r in rounds.alternatives),
+        alternatives=tuple(Alternative(r.score, r.env_from_object) for r in rounds.alternatives),
         timings_s=timings,
     )

@@ -92,11 +92,15 @@ def pose_change(
         # bracket turned end for end): the detector's boxes choose among the near-ties, and
         # settle the tie when one of them explains the boxes clearly best.
         rivals = [
-            alt
-            for score, alt in pose.alternatives
-            if score > options.max_runner_up_ratio * pose.score
+            alt.env_from_object
+            for alt in pose.alternatives
+            if alt.score > options.max_runner_up_ratio * pose.score
             and distinct_pose(
-                alt, chosen, model.symmetry, model.diameter_m, centre=model.centre_object
+                alt.env_from_object,
+                chosen,
+                model.symmetry,
+                model.diameter_m,
+                centre=model.centre_object,
             )
         ]
         ranked = sorted(

@@ -24,13 +24,21 @@ class Trial:
 
 
 @dataclass(frozen=True, eq=False)
+class Alternative:
+    """Another refined hypothesis: its fine ``score`` and ``env_from_object`` (4×4, metres)."""
+
+    score: float
+    env_from_object: Mat4
+
+
+@dataclass(frozen=True, eq=False)
 class PoseResult:
     """Pose of one object. ``env_from_object``: 4×4 float64 mapping object-model points
     (metres) into the environment frame. ``equivalent_poses``: other poses that fit equally
     well by symmetry (continuous symmetry: 8 samples per discrete element; the axis is
     ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
     "colour", "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
-    ``alternatives``: the other refined hypotheses as (fine score, env_from_object), best
+    ``alternatives``: the other refined hypotheses (:class:`Alternative`), best
     first — for a caller whose re-projection check rejects the chosen pose."""
 
     env_from_object: Mat4
@@ -50,7 +58,7 @@ class PoseResult:
     source: str
     trials: tuple[Trial, ...]
     n_scene_points: int
-    alternatives: tuple[tuple[float, Mat4], ...] = ()
+    alternatives: tuple[Alternative, ...] = ()
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:

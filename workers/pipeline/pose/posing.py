@@ -20,12 +20,13 @@ from workers.pipeline.compare.results import Change, CompareResult
 from workers.pipeline.compare.stage import render_depth_maps
 from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import PipelineError
-from workers.pipeline.geometry import transform_points
+from workers.pipeline.geometry import Mat4, transform_points
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.candidates import distinct_pose
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
+from workers.pipeline.pose.result import PoseResult
 from workers.pipeline.pose.verify import RUNNER_UP_REASON, ReprojectionCheck, reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
@@ -49,6 +50,23 @@ def cameras_from_json(images: Mapping[str, Mapping[str, Any]]) -> tuple[Camera, 
         )
         for name, view in sorted(images.items())
     )
+
+
+def _rivals(pose: PoseResult, model: PreparedModel, options: PoseOptions) -> list[Mat4]:
+    """The refined alternatives that tie with the chosen pose (fine score above
+    ``max_runner_up_ratio`` × the best) and are distinct from it modulo symmetry."""
+    return [
+        alt.env_from_object
+        for alt in pose.alternatives
+        if alt.score > options.max_runner_up_ratio * pose.score
+        and distinct_pose(
+            alt.env_from_object,
+            pose.env_from_object,
+            model.symmetry,
+            model.diameter_m,
+            centre=model.centre_object,
+        )
+    ]
 
 
 def pose_change(
@@ -91,20 +109,8 @@ def pose_change(
         # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
         # bracket turned end for end): the detector's boxes choose among the near-ties, and
         # settle the tie when one of them explains the boxes clearly best.
-        rivals = [
-            alt.env_from_object
-            for alt in pose.alternatives
-            if alt.score > options.max_runner_up_ratio * pose.score
-            and distinct_pose(
-                alt.env_from_object,
-                chosen,
-                model.symmetry,
-                model.diameter_m,
-                centre=model.centre_object,
-            )
-        ]
         ranked = sorted(
-            [(check, chosen), *((check_of(alt), alt) for alt in rivals)],
+            [(check, chosen), *((check_of(alt), alt) for alt in _rivals(pose, model, options))],
             key=lambda pair: -pair[0].mean_iou,
         )
         best_check, best_pose = ranked[0]

@@ -18,6 +18,8 @@ import math
 from typing import Any
 
 from app.core.errors import InvalidInput
+from app.formats.errors import short
+from app.formats.errors import show as show  # re-exported: the API names values with it
 
 MAX_DEPTH = 32
 """The deepest nesting accepted; the deepest document the API defines (a marker pose in an
@@ -52,20 +54,6 @@ def _parse_float(text: str) -> float | _Rejected:
 
 def _parse_constant(name: str) -> _Rejected:
     return _Rejected(f"{name} is not a JSON number")
-
-
-def short(text: str, limit: int = 40) -> str:
-    """``text``, or its two ends when longer than ``limit`` (so a 5,000-digit value is never
-    echoed back)."""
-    return text if len(text) <= limit else f"{text[:20]}…{text[-10:]} ({len(text)} characters)"
-
-
-def show(value: Any, limit: int = 40) -> str:
-    """A short ``repr`` of ``value`` for an error message (never the 400 digits of 10**400:
-    a caller may pass what did not come through :func:`loads`)."""
-    if isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > 64:
-        return f"an integer of {value.bit_length()} bits"
-    return short(repr(value), limit)
 
 
 def path_join(where: str, key: str | int) -> str:

@@ -8,6 +8,7 @@ raises its InputError.
 
 - :mod:`app.formats.cameras`: cameras.json (intrinsics, env_from_cam poses), its JSON Schema.
 - :mod:`app.formats.yolo`: YOLO label files.
+- :mod:`app.formats.reference`: an environment's marker reference (ArUco sheet).
 """
 
 from app.formats.errors import FormatError, FormatTooLarge

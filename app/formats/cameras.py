@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from app.formats.errors import FormatError
+from app.formats.errors import FormatError, show
 
 CODE = "InvalidCameras"
 KEYS = ("intrinsics", "intrinsics_per_image", "poses")
@@ -244,7 +244,7 @@ def check_camera(value: Any, where: str) -> dict[str, Any]:
     model = value.get("model")
     if not isinstance(model, str) or model not in CAMERA_MODELS:
         raise FormatError(
-            where, f"model {_show(model)} is not one of {sorted(CAMERA_MODELS)}", code=CODE
+            where, f"model {show(model)} is not one of {sorted(CAMERA_MODELS)}", code=CODE
         )
     size = []
     for key in ("width", "height"):
@@ -258,7 +258,7 @@ def check_camera(value: Any, where: str) -> dict[str, Any]:
     expected = CAMERA_MODELS[model].n_params
     if not isinstance(params, list | tuple) or len(params) != expected:
         raise FormatError(
-            where, f"model {model} takes {expected} params, got {_show(params)}", code=CODE
+            where, f"model {model} takes {expected} params, got {show(params)}", code=CODE
         )
     if not all(_is_number(p) for p in params):
         raise FormatError(where, "params must be finite numbers", code=CODE)
@@ -306,11 +306,6 @@ def _det3(r: list[list[float]]) -> float:
         - r[0][1] * (r[1][0] * r[2][2] - r[1][2] * r[2][0])
         + r[0][2] * (r[1][0] * r[2][1] - r[1][1] * r[2][0])
     )
-
-
-def _show(value: Any, limit: int = 40) -> str:
-    text = repr(value)
-    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 # --- writing ---------------------------------------------------------------------------------

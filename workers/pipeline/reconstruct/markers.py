@@ -16,6 +16,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from app.formats import FormatError
+from app.formats.reference import read_reference
 from workers.pipeline.errors import InputError, ShapeError
 from workers.pipeline.geometry import (
     Mat4,
@@ -67,21 +69,19 @@ def marker_corners_local(size_m: float) -> NDArray[np.float64]:
 
 
 def parse_reference(reference: dict[str, Any] | None) -> MarkerReference | None:
-    """Parse an environment ``reference`` ({"markers": {...}}); None when it has no markers."""
+    """Parse an environment ``reference`` (:mod:`app.formats.reference`); None when it has
+    no markers. InputError naming the field when it is malformed."""
     if not reference or "markers" not in reference:
         return None
-    raw = reference["markers"]
     try:
-        dictionary = str(raw.get("dictionary", "DICT_4X4_50"))
-        size = float(raw["size"])
-        poses = {int(k): as_mat4(v, f"markers.poses[{k}]") for k, v in raw["poses"].items()}
-    except (KeyError, TypeError, ValueError, AttributeError, ShapeError) as exc:
+        sheet = read_reference(reference)
+    except FormatError as exc:
         raise InputError(f"reference markers are malformed: {exc}") from exc
-    if not hasattr(cv2.aruco, dictionary):
-        raise InputError(f"unknown ArUco dictionary {dictionary!r}")
-    if size <= 0 or not poses:
-        raise InputError("reference markers need a positive size and at least one pose")
-    return MarkerReference(dictionary, size, poses)
+    assert sheet is not None  # a document with markers is a sheet or an error
+    if not hasattr(cv2.aruco, sheet.dictionary):
+        raise InputError(f"unknown ArUco dictionary {sheet.dictionary!r}")
+    poses = {i: as_mat4(m, f"markers.poses[{i}]") for i, m in sheet.env_from_marker.items()}
+    return MarkerReference(sheet.dictionary, sheet.size_m, poses)
 
 
 def detect_markers(

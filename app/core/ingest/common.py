@@ -19,8 +19,6 @@ LABEL_SUFFIX = ".txt"
 CAMERAS_NAME = "cameras.json"
 CLASSES_NAME = "classes.txt"
 CAMERAS_MAX_BYTES = 32 * 1024**2
-CLASSES_MAX_BYTES = 1024**2
-MAX_LINE_BYTES = 1024
 _SEQ_RETRIES = 5
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 

@@ -167,8 +167,11 @@ def test_presets_and_overrides() -> None:
     assert opts.icp_max_distances_m == (1.0, 2.0)
     assert options_from_preset().cuda_dense is False
     assert options_from_preset(cuda_dense=True).cuda_dense is True
+    assert options_from_preset(sgbm_mode="3way").sgbm_mode == "3way"
     for bad in (
         {"cuda_dense": "yes"},
+        {"sgbm_mode": "3wya"},  # a closed set: a typo is refused, not a KeyError mid-run
+        {"sgbm_mode": 3},
         {"planar_min_points": 2.5},
         {"voxel_size_m": "1"},
         {"seed": True},

@@ -1,4 +1,4 @@
-"""Fusion of consistent depth points into one cloud, PLY I/O, and the
+"""Fusion of consistent depth points into one cloud (voxel averaging), PLY I/O, and the
 pycolmap CUDA dense path (used where ``pycolmap.has_cuda`` and the ``cuda_dense`` option)."""
 
 from __future__ import annotations

@@ -210,10 +210,10 @@ def _far_seed_partners(
 
     A far depth needs a second pair to confirm it, since a pair's own two views agree by
     construction: with one far pair per two views, a far wall that only a few views see
-    along their image edges (a generated room's 6 m walls from a 1.7 m camera ring) had one
-    pair's depth and no seed point, so no plane. Fusing these pairs' depths too measured a
-    floor completeness 0.963 -> 0.943 (more far SGBM depth, 1-4 cm off, kept where the
-    verified floor plane would have filled in)."""
+    along their image edges had one pair's depth and no seed point, so no plane. Their
+    depths stay out of the cloud: fused, they lowered the floor's completeness (far SGBM
+    depth 1-4 cm off kept where the verified plane would have filled in; figures in
+    docs/decisions/reconstruct.md)."""
     n = len(centres)
     if not options.far_range or not options.planar_prior:
         return tuple(() for _ in range(n))

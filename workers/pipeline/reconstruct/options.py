@@ -7,10 +7,13 @@ what it is (the measurements) is in docs/decisions/reconstruct.md.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 from workers.pipeline.errors import InputError
+
+SgbmMode = Literal["hh4", "3way", "sgbm", "hh"]  # OpenCV StereoSGBM modes (HH4, 3WAY, SGBM, HH)
 
 
 @dataclass(frozen=True)
@@ -43,7 +46,7 @@ class ReconstructOptions:
     pairs_per_view: int = 1  # stereo partners per view; 2 for more complete, slower clouds
     max_disparities: int = 256  # SGBM disparity window (px); raise for deep scenes, costs time
     sgbm_block_size: int = 5  # SGBM matching block (px, odd); larger smooths, loses detail
-    sgbm_mode: str = "hh4"  # SGBM paths: "hh4" accurate, "3way" 2.5× faster, biased on slopes
+    sgbm_mode: SgbmMode = "hh4"  # SGBM paths: "hh4" accurate, "3way" 2.5× faster, biased on slopes
     min_triangulation_angle_deg: float = 4.0  # a stereo partner's least median parallax
     max_viewing_angle_deg: float = 45.0  # a stereo partner's largest optical-axis angle
     consistency_views: int = 4  # views a depth is checked against; 6 is slower, barely better
@@ -120,6 +123,13 @@ def options_from_preset(name: str = "default", **overrides: Any) -> ReconstructO
         raise InputError(f"unknown reconstruct options: {', '.join(sorted(unknown))}")
     kinds = {f.name: str(f.type) for f in dataclasses.fields(ReconstructOptions)}
     checked = {k: _checked_value(k, v, kinds[k]) for k, v in overrides.items()}
+    hints = typing.get_type_hints(ReconstructOptions)
+    for key, value in checked.items():
+        choices = typing.get_args(hints[key]) if typing.get_origin(hints[key]) is Literal else ()
+        if choices and value not in choices:
+            raise InputError(
+                f"reconstruct option {key} must be one of {', '.join(choices)}, got {value!r}"
+            )
     return dataclasses.replace(PRESETS[name], **checked)
 
 

@@ -2,8 +2,8 @@
 coloured cloud in metres in the environment frame.
 
 Outputs under ``work_dir``: ``cloud.ply`` (binary, coloured, env frame), ``cameras.json``
-(per image K, dist, width, height, env_from_cam) and ``quality.json``; working artefacts
-in ``work_dir/sfm`` (resumable).
+(per-image intrinsics and env_from_cam poses: the cameras.json the next stages read) and
+``quality.json``; working artefacts in ``work_dir/sfm`` (resumable).
 """
 
 from __future__ import annotations

@@ -1,6 +1,7 @@
 """YOLO label files: the one parser, used by the upload API and the compare stage.
 
-One file per image (``labels/<image stem>.txt``), one detection per line::
+One file per image (``labels/<image stem>.txt``), one detection per line (class names in
+``classes.txt``, :func:`read_class_names`)::
 
     class cx cy w h [confidence]
 
@@ -57,6 +58,16 @@ def text_lines(
         except UnicodeDecodeError:
             raise FormatError(f"{where} line {number}", "not UTF-8 text", code=code) from None
         yield number, text
+
+
+def read_class_names(source: BinaryIO, where: str) -> list[str]:
+    """classes.txt beside the labels: one class name per line, line i naming class id i;
+    names stripped of surrounding white space, trailing blank lines dropped. Errors as
+    :func:`text_lines`."""
+    names = [line.strip() for _, line in text_lines(source, where)]
+    while names and not names[-1]:
+        names.pop()
+    return names
 
 
 def read_yolo(

@@ -14,7 +14,7 @@ from app.core.ingest.common import CAMERAS_MAX_BYTES, _invalid, _too_large
 from app.formats import FormatError, FormatTooLarge
 from app.formats.cameras import CODE as CAMERAS_CODE
 from app.formats.cameras import read_cameras
-from app.formats.yolo import read_yolo, text_lines
+from app.formats.yolo import read_class_names, read_yolo
 
 
 def domain_error(exc: FormatError) -> DomainError:
@@ -73,9 +73,7 @@ def parse_classes(source: BinaryIO, where: str, classes: Sequence[str]) -> list[
     """classes.txt (one name per line) must list the environment's classes in order;
     ``ClassesMismatch`` (422) names the first line that differs."""
     with answered():
-        names = [line.strip() for _, line in text_lines(source, where)]
-    while names and not names[-1]:
-        names.pop()
+        names = read_class_names(source, where)
     for number, (got, want) in enumerate(zip(names, classes, strict=False), start=1):
         if got != want:
             raise _invalid(

@@ -7,7 +7,7 @@ import io
 import pytest
 
 from app.formats import FormatError, FormatTooLarge
-from app.formats.yolo import YoloBox, read_yolo, yolo_line
+from app.formats.yolo import YoloBox, read_class_names, read_yolo, yolo_line
 
 
 def read(text: bytes, n_classes: int | None = 3, max_boxes: int | None = None) -> list[YoloBox]:
@@ -56,3 +56,10 @@ def test_limits_and_an_unknown_class_count() -> None:
     with pytest.raises(FormatTooLarge) as err:
         read(b"0 0.5 0.5 0.1 0.1\n" * 3, max_boxes=2)
     assert err.value.code == "TooManyDetections" and "line 3" in err.value.field
+
+
+def test_class_names_one_a_line_trailing_blanks_dropped() -> None:
+    source = io.BytesIO(b"\xef\xbb\xbfcrate \n drum\n\n\n")
+    assert read_class_names(source, "classes.txt") == ["crate", "drum"]
+    with pytest.raises(FormatError, match=r"classes\.txt line 2: not UTF-8"):
+        read_class_names(io.BytesIO(b"crate\n\xff\n"), "classes.txt")

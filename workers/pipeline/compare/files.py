@@ -27,7 +27,7 @@ from app.formats.cameras import (
     is_reconstruction_images,
     read_cameras,
 )
-from app.formats.yolo import read_yolo
+from app.formats.yolo import read_class_names, read_yolo
 from workers.pipeline.compare.data import Camera, CaptureData, TwinInstance
 from workers.pipeline.errors import InputError
 
@@ -121,11 +121,15 @@ def load_capture(folder: Path, labels_dir: Path | None = None) -> CaptureData:
 
 
 def load_classes(path: Path) -> list[str]:
-    """Class names, one per line (line i = detector class id i)."""
+    """Class names, one per line (line i = detector class id i; :mod:`app.formats.yolo`),
+    blank lines skipped."""
     try:
-        return [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
+        with Path(path).open("rb") as fh:
+            return [name for name in read_class_names(fh, str(path)) if name]
     except OSError as exc:
         raise InputError(f"{path}: cannot read classes ({exc})") from exc
+    except FormatError as exc:
+        raise InputError(str(exc)) from exc
 
 
 def load_twin(path: Path) -> list[TwinInstance]:

@@ -12,9 +12,11 @@ from typing import Any
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy.exc import DataError
 
 from app.core.errors import InvalidInput
 from app.core.options import check_stage_options
+from app.main import create_app
 from tests.app.api.test_objects_api import PLY_CUBE
 from tests.app.api.test_snapshots_upload import as_parts, capture, make_env, upload
 from tests.app.conftest import Keys, SentTasks
@@ -243,20 +245,34 @@ def test_nul_in_a_path_or_query_is_a_422(client: TestClient, keys: Keys) -> None
         assert r.status_code == 422 and "NUL" in r.json()["detail"], (url, r.text)
 
 
-def test_a_value_the_database_refuses_is_a_422_not_a_500(
-    client: TestClient, keys: Keys, sent_tasks: SentTasks, database_url: str
+def test_a_name_with_a_nul_is_a_422_on_every_database(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks
 ) -> None:
-    """The safety net past the API's own checks: PostgreSQL refuses NUL in text (here a form
-    field no JSON guard sees); SQLite stores it as given."""
+    """A form field no JSON guard sees: PostgreSQL would refuse the NUL, SQLite would store
+    it; the API refuses it first, naming the field, on both."""
     r = client.post(
         "/v1/objects",
         files={"file": ("bracket.ply", io.BytesIO(PLY_CUBE))},
         data={"name": "brack\x00et"},
         headers=keys.headers(),
     )
-    if database_url.startswith("postgresql"):
-        assert r.status_code == 422, r.text
-        assert r.json()["error"] == "InvalidInput" and "NUL" in r.json()["detail"]
-        assert sent_tasks.names() == []
-    else:
-        assert r.status_code == 202 and r.json()["name"] == "brack\x00et", r.text
+    assert r.status_code == 422, r.text
+    assert r.json()["error"] == "InvalidInput" and r.json()["detail"].startswith("name: ")
+    assert sent_tasks.names() == []
+
+
+def test_a_value_the_database_refuses_is_a_422_not_a_500() -> None:
+    """The safety net past the API's own checks: a DataError from the database driver is the
+    request's fault, rendered as a 422 with the database's first line, never a 500."""
+    app = create_app()
+
+    def refused() -> None:
+        raise DataError("INSERT ...", {}, Exception("invalid byte sequence 0x00\nCONTEXT ..."))
+
+    app.add_api_route("/v1/refused", refused, methods=["GET"])
+    r = TestClient(app, raise_server_exceptions=False).get("/v1/refused")
+    assert r.status_code == 422, r.text
+    assert r.json() == {
+        "error": "InvalidInput",
+        "detail": "a value the database cannot store: invalid byte sequence 0x00",
+    }

@@ -42,7 +42,7 @@ class ReconstructOptions:
     min_marker_views: int = 2  # views a marker must be seen in to be triangulated
     # multi-view stereo
     cuda_dense: bool = False  # pycolmap CUDA PatchMatch instead of CPU SGBM (SfM mode, CUDA builds)
-    mvs_scale: float = 1.0  # image scale of the depth maps; 0.5 is ~4× faster, coarser
+    mvs_scale: float = 1.0  # image scale of the depth maps; 0.5: a quarter of the pixels, coarser
     pairs_per_view: int = 1  # stereo partners per view; 2 for more complete, slower clouds
     max_disparities: int = 256  # SGBM disparity window (px); raise for deep scenes, costs time
     sgbm_block_size: int = 5  # SGBM matching block (px, odd); larger smooths, loses detail
@@ -57,7 +57,7 @@ class ReconstructOptions:
     far_consistency_rel_tol: float = 0.03  # relative agreement needed beyond far_min_depth_m
     consistency_min_views: int = 2  # agreeing views a measured depth needs to be kept
     consistency_rel_tol: float = 0.01  # relative depth agreement needed (near depths)
-    point_stride: int = 2  # every n-th pixel (rows and columns) becomes a point; 1: ~4× points
+    point_stride: int = 2  # every n-th pixel (rows, columns) becomes a point; 1: ~4× the points
     # planar prior (planar.py): verified plane depths for far, weakly textured floor and walls
     planar_prior: bool = True  # fill far/empty pixels with photometrically verified planes
     planar_min_depth_m: float = 3.0  # no plane depth nearer than this (the work area)

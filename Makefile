@@ -21,7 +21,7 @@ help:
 	@echo "make test    - the test suite (needs PostgreSQL and Redis on 127.0.0.1, see README)"
 	@echo "make serve   - the embedded service (API + workers, no external servers) on HOST:PORT"
 	@echo "make bench   - benchmarks; JSON results under bench/results/"
-	@echo "make lint    - ruff, mypy, import-linter, function size, OpenAPI, option-schema and option-docs freshness"
+	@echo "make lint    - ruff, mypy, import-linter, function size and complexity, generated files fresh"
 	@echo "make openapi - regenerate openapi/openapi.json"
 	@echo "make option-schema - regenerate app/core/option_schema.json from the workers' options"
 	@echo "make option-docs - regenerate docs/options.md from the workers' option classes"
@@ -83,6 +83,7 @@ lint: install
 	$(VENV)/bin/python -m app.formats.cameras | diff -q - openapi/cameras.schema.json >/dev/null || { echo "openapi/cameras.schema.json is stale: run $(VENV)/bin/python -m app.formats.cameras > openapi/cameras.schema.json"; exit 1; }
 	$(VENV)/bin/python -m workers.pipeline option-docs | diff -q - docs/options.md >/dev/null || { echo "docs/options.md is stale: run make option-docs"; exit 1; }
 	$(VENV)/bin/python .ci/function_size.py app workers
+	$(VENV)/bin/ruff check --select C901 app workers
 
 format: install
 	$(VENV)/bin/ruff check --fix .

@@ -38,12 +38,7 @@ def roll_pitch_yaw_deg(rotation: np.ndarray) -> list[float]:
 
 def _symmetry(truth: dict[str, Any], name: str) -> Any:
     raw = (truth.get("objects", {}).get(name) or {}).get("symmetry")
-    if not raw:
-        return None
-    raw = dict(raw)
-    if "point" in raw and "origin" not in raw:
-        raw["origin"] = raw.pop("point")
-    return spec_from_json(raw)
+    return spec_from_json(raw) if raw else None
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,8 @@ import open3d as o3d
 import pytest
 
 from workers.pipeline.errors import InputError
-from workers.pipeline.geometry import invert_rigid, make_rigid, transform_points
+from workers.pipeline.geometry import invert_rigid, make_rigid, pose_error, transform_points
+from workers.pipeline.model.symmetry_group import spec_from_json, symmetric_pose_error
 from workers.pipeline.synth import (
     CAPTURES,
     PRESETS,
@@ -35,7 +36,6 @@ from workers.pipeline.synth import (
 from workers.pipeline.synth.cameras import camera_path, intrinsics_matrix
 from workers.pipeline.synth.cli import cli
 from workers.pipeline.synth.markers import marker_corners_m, rot_z
-from workers.pipeline.synth.symmetry import symmetric_pose_error
 
 TINY = PRESETS["tiny"]
 
@@ -343,11 +343,12 @@ def test_symmetric_pose_error_forgives_turns_about_the_axis() -> None:
     true = make_rigid(np.eye(3), [0.3, -0.2, 0.0])
     turn = np.eye(4)
     turn[:3, :3] = rot_z(np.radians(37.0))
-    assert symmetric_pose_error(true @ turn, true, drum.symmetry) == pytest.approx((0, 0), abs=0.3)
-    t_err, r_err = symmetric_pose_error(true @ turn, true, None)
+    spec = spec_from_json(drum.symmetry)
+    assert symmetric_pose_error(true @ turn, true, spec) == pytest.approx((0, 0), abs=1e-5)
+    t_err, r_err = pose_error(true @ turn, true)
     assert r_err == pytest.approx(37.0, abs=1e-6) and t_err == pytest.approx(0.0, abs=1e-12)
     tilt = make_rigid(np.asarray([[1, 0, 0], [0, 0, -1], [0, 1, 0]]), [0, 0, 0])
-    assert symmetric_pose_error(true @ tilt, true, drum.symmetry)[1] == pytest.approx(90.0)
+    assert symmetric_pose_error(true @ tilt, true, spec)[1] == pytest.approx(90.0)
 
 
 def test_detection_corruption_options() -> None:

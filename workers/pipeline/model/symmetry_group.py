@@ -111,10 +111,16 @@ def _check_rotation(m: Any, what: str) -> Mat4:
     return a
 
 
+SPEC_KEYS = frozenset({"kind", "rotations", "axis", "origin", "appearance_breaks"})
+
+
 def spec_from_json(raw: Any) -> SymmetrySpec:
     """Parse and validate a spec (format in the module docstring); InputError if invalid."""
     if not isinstance(raw, dict) or raw.get("kind") not in KINDS:
         raise InputError(f"symmetry must be an object with kind in {KINDS}, got {raw!r:.200}")
+    unknown = sorted(set(raw) - SPEC_KEYS)
+    if unknown:
+        raise InputError(f"symmetry has unknown keys {unknown}; it takes {sorted(SPEC_KEYS)}")
     kind = raw["kind"]
     brk = bool(raw.get("appearance_breaks", False))
     if kind == "none":
@@ -136,24 +142,6 @@ def spec_from_json(raw: Any) -> SymmetrySpec:
     if norm < 1e-9:
         raise InputError("continuous symmetry axis must be non-zero")
     return SymmetrySpec("continuous", tuple(rots), axis / norm, origin, brk)
-
-
-def spec_from_ground_truth(raw: Any) -> SymmetrySpec:
-    """The spec of a generated scene's ground truth (``ground_truth.json``, written by
-    :mod:`workers.pipeline.synth`), whose symmetry is None, ``{"kind": "continuous", "axis",
-    "point"}`` or ``{"kind": "discrete", "transforms": [4×4, ...]}`` (identity implied):
-    renamed to this module's format (``origin``, ``rotations``) here, the one place that
-    spelling is read, then checked by :func:`spec_from_json`."""
-    if raw is None:
-        return NO_SYMMETRY
-    if not isinstance(raw, dict):
-        raise InputError(f"ground-truth symmetry must be an object or null, got {raw!r:.200}")
-    spec = {k: v for k, v in raw.items() if k not in {"point", "transforms"}}
-    if "point" in raw:
-        spec.setdefault("origin", raw["point"])
-    if "transforms" in raw:
-        spec.setdefault("rotations", [np.eye(4).tolist(), *raw["transforms"]])
-    return spec_from_json(spec)
 
 
 def spec_to_json(spec: SymmetrySpec) -> dict[str, Any]:

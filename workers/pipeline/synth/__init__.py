@@ -29,7 +29,6 @@ from workers.pipeline.synth.options import (
 )
 from workers.pipeline.synth.scene import Placement, Scenario, build_scenario
 from workers.pipeline.synth.shapes import ObjectModel, builtin_models, load_model
-from workers.pipeline.synth.symmetry import equivalent_transforms, symmetric_pose_error
 
 __all__ = [
     "CAPTURES",
@@ -48,14 +47,12 @@ __all__ = [
     "build_scenario",
     "builtin_models",
     "detect",
-    "equivalent_transforms",
     "generate",
     "ground_truth",
     "load_model",
     "load_true_surfaces",
     "preset",
     "render_capture",
-    "symmetric_pose_error",
     "true_surfaces",
     "visible_boxes",
     "yolo_lines",

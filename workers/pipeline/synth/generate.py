@@ -7,7 +7,7 @@ Layout under ``out_dir``::
     ground_truth.json            objects/<class>.ply
 
 ``ground_truth.json``: ``scenario``, ``seed``, ``classes`` (as classes.txt), ``objects``
-({class: {"model": "objects/<class>.ply", "symmetry": spec or null}}, see symmetry.py),
+({class: {"model": "objects/<class>.ply", "symmetry": spec or null}}, the library's format),
 ``room`` (RoomOptions, enough to rebuild the room meshes), ``reference`` (as
 reference.json), ``before`` / ``after`` ([{"instance_id", "object", "class_id",
 "env_from_object", "support"}]), ``changes`` ([{"type", "object", "instance_id", "pose",
@@ -218,7 +218,8 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
     """The ground-truth document: classes, models, room, placements of both captures, changes.
 
     Poses are ``env_from_object`` 4×4 row-major lists (metres); ``symmetry`` (object frame)
-    is None or {"kind": "continuous", "axis", "point"}.
+    is None or {"kind": "continuous", "axis", "origin"}: the library's symmetry format
+    (``workers.pipeline.model.symmetry_group.spec_from_json`` reads it).
     """
     classes = [m.name for m in scenario.models]
 

@@ -154,7 +154,7 @@ class ObjectModel:
 
     Exactly one appearance is set: ``solid`` (procedural, evaluated at object-frame
     positions), ``uv_texture`` with ``triangle_uvs`` (T, 3, 2), or ``vertex_colours`` (V, 3).
-    ``symmetry`` is None or {"kind": "continuous", "axis": [x, y, z], "point": [x, y, z]}
+    ``symmetry`` is None or {"kind": "continuous", "axis": [x, y, z], "origin": [x, y, z]}
     (object frame): the rotations about that axis leave the shape unchanged.
     """
 
@@ -279,7 +279,7 @@ def builtin_models() -> list[ObjectModel]:
             "drum",
             drum,
             _solid((0.15, 0.3, 0.75), (0.08, 0.12, 0.35), 105),
-            symmetry={"kind": "continuous", "axis": [0.0, 0.0, 1.0], "point": [0.0, 0.0, 0.0]},
+            symmetry={"kind": "continuous", "axis": [0.0, 0.0, 1.0], "origin": [0.0, 0.0, 0.0]},
         ),
     ]
 
@@ -301,7 +301,7 @@ def load_model(path: Path, name: str | None = None) -> ObjectModel:
     if label in _YCB_SYMMETRIC_Z:
         lo, hi = mesh.vertices.min(0), mesh.vertices.max(0)
         centre = [float((lo[0] + hi[0]) / 2), float((lo[1] + hi[1]) / 2), 0.0]
-        symmetry = {"kind": "continuous", "axis": [0.0, 0.0, 1.0], "point": centre}
+        symmetry = {"kind": "continuous", "axis": [0.0, 0.0, 1.0], "origin": centre}
     uvs = np.asarray(legacy.triangle_uvs, np.float64)
     if legacy.textures and len(uvs) == 3 * len(mesh.triangles):
         # Open3D hands the texture back bottom-up; flip it to the file's top-down rows so

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 from workers.pipeline.errors import InputError
+from workers.pipeline.option_values import with_overrides
 
 ThresholdKind = Literal["mean_std", "fixed", "lod"]
 StatsRegion = Literal["overlap", "all"]
@@ -266,6 +267,4 @@ def options_from_json(
 
     Raises InputError for an unknown preset or option.
     """
-    if preset not in PRESETS:
-        raise InputError(f"unknown compare preset {preset!r}; known: {sorted(PRESETS)}")
-    return PRESETS[preset].replace(**dict(overrides or {}))
+    return with_overrides("compare", PRESETS, preset, overrides)

@@ -7,12 +7,11 @@ Measurement history behind the defaults: ``docs/decisions/pose.md``.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from workers.pipeline.errors import InputError
+from workers.pipeline.option_values import with_overrides
 
 
 @dataclass(frozen=True)
@@ -85,12 +84,4 @@ def pose_options_from_json(options: Mapping[str, Any] | None) -> PoseOptions:
     comparison options; lists become tuples). InputError for an unknown preset or option."""
     overrides = dict(options or {})
     preset = str(overrides.pop("preset", "default"))
-    if preset not in POSE_PRESETS:
-        raise InputError(f"unknown pose preset {preset!r}; known: {', '.join(POSE_PRESETS)}")
-    unknown = sorted(set(overrides) - {f.name for f in dataclasses.fields(PoseOptions)})
-    if unknown:
-        raise InputError(f"unknown pose option(s): {', '.join(unknown)}")
-    values: dict[str, Any] = {
-        k: tuple(v) if isinstance(v, list) else v for k, v in overrides.items()
-    }
-    return dataclasses.replace(POSE_PRESETS[preset], **values)
+    return with_overrides("pose", POSE_PRESETS, preset, overrides)

@@ -6,12 +6,10 @@ what it is (the measurements) is in docs/decisions/reconstruct.md.
 
 from __future__ import annotations
 
-import dataclasses
-import typing
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from workers.pipeline.errors import InputError
+from workers.pipeline.option_values import with_overrides
 
 SgbmMode = Literal["hh4", "3way", "sgbm", "hh"]  # OpenCV StereoSGBM modes (HH4, 3WAY, SGBM, HH)
 
@@ -114,45 +112,6 @@ PRESETS: dict[str, ReconstructOptions] = {
 
 
 def options_from_preset(name: str = "default", **overrides: Any) -> ReconstructOptions:
-    """The named preset with ``overrides`` applied; raises InputError for unknown names."""
-    if name not in PRESETS:
-        raise InputError(f"unknown reconstruct preset {name!r}; known: {', '.join(PRESETS)}")
-    fields = {f.name for f in dataclasses.fields(ReconstructOptions)}
-    unknown = set(overrides) - fields
-    if unknown:
-        raise InputError(f"unknown reconstruct options: {', '.join(sorted(unknown))}")
-    kinds = {f.name: str(f.type) for f in dataclasses.fields(ReconstructOptions)}
-    checked = {k: _checked_value(k, v, kinds[k]) for k, v in overrides.items()}
-    hints = typing.get_type_hints(ReconstructOptions)
-    for key, value in checked.items():
-        choices = typing.get_args(hints[key]) if typing.get_origin(hints[key]) is Literal else ()
-        if choices and value not in choices:
-            raise InputError(
-                f"reconstruct option {key} must be one of {', '.join(choices)}, got {value!r}"
-            )
-    return dataclasses.replace(PRESETS[name], **checked)
-
-
-def _checked_value(name: str, value: Any, kind: str) -> Any:
-    """``value`` as the option's type (an int is taken for a float, a list for a tuple of
-    floats); raises InputError naming the option when it is of another type."""
-    number = isinstance(value, int | float) and not isinstance(value, bool)
-    if kind == "bool" and isinstance(value, bool):
-        return value
-    if kind == "int" and number and float(value).is_integer():
-        return int(value)
-    if kind == "float" and number:
-        return float(value)
-    if kind == "str" and isinstance(value, str):
-        return value
-    is_tuple = kind.startswith("tuple[float")
-    if (
-        is_tuple
-        and isinstance(value, list | tuple)
-        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-    ):
-        return tuple(float(v) for v in value)
-    if kind not in ("bool", "int", "float", "str") and not is_tuple:
-        return value
-    expected = "a list of numbers" if is_tuple else f"a {kind}"
-    raise InputError(f"reconstruct option {name} must be {expected}, got {value!r}")
+    """The named preset with ``overrides`` applied (:func:`with_overrides`); InputError for
+    an unknown preset or option or a value of another type."""
+    return with_overrides("reconstruct", PRESETS, name, overrides)

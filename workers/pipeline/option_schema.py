@@ -1,6 +1,6 @@
 """The names, presets and JSON types of the reconstruct, compare and pose options, for the API.
 
-The API may not import the workers (ARCHITECTURE.md), yet it should refuse an environment or
+The API may not import the workers (docs/architecture.md), yet it should refuse an environment or
 comparison whose options a job would refuse, when they are posted rather than when the job
 runs. ``python -m workers.pipeline option-schema --out app/core/option_schema.json`` writes
 this description where ``app.core.options`` reads it; ``make lint`` fails when it is stale.

@@ -26,6 +26,7 @@ from app.core.errors import (
 )
 from app.core.models import Job, LibraryObject, new_id, utcnow
 from app.core.storage import LocalStorage
+from app.formats.ply import ply_count_problem
 
 TASK = "object.prepare"
 MODEL_SUFFIXES = {".ply", ".obj", ".stl", ".glb", ".off", ".pcd"}
@@ -133,46 +134,12 @@ def format_problem(suffix: str, head: bytes, size_bytes: int) -> str | None:
     return None
 
 
-_PLY_SCALAR_BYTES = {
-    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
-    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-    "double": 8, "float64": 8,
-}  # fmt: skip
-
-
 def _ply_count_problem(head: bytes, size_bytes: int) -> str | None:
-    """The PLY header's element counts against the file's size: each element needs at least
-    its binary size (a list at least its count) or two ASCII characters per value, so a
-    small file declaring billions of vertices is refused before a reader allocates for
-    them (the worker checks the same when it loads the file)."""
-    end = head.find(b"end_header")
-    if end < 0:  # a header longer than ``head`` is left to the worker's own check
-        return None if len(head) < size_bytes else "the PLY header has no 'end_header' line"
-    newline = head.find(b"\n", end)
-    body = size_bytes - (newline + 1 if newline >= 0 else len(head))
-    binary = False
-    elements: list[list[Any]] = []  # [name, count, bytes at least]
-    for line in head[:end].decode("latin-1").splitlines():
-        words = line.split()
-        if len(words) >= 2 and words[0] == "format":
-            binary = words[1].startswith("binary")
-        elif len(words) == 3 and words[0] == "element":
-            if not (words[2].isascii() and words[2].isdigit()):
-                return f"element {words[1]!r} has no count"
-            elements.append([words[1], int(words[2]), 0])
-        elif len(words) >= 3 and words[0] == "property" and elements:
-            kind = words[2] if words[1] == "list" else words[1]
-            if kind not in _PLY_SCALAR_BYTES:
-                return f"unknown PLY property type {kind!r}"
-            elements[-1][2] += _PLY_SCALAR_BYTES[kind] if binary else 2
-    for name, count, at_least in elements:
-        if count * at_least > body:
-            return (
-                f"the header declares {count} {name} elements, which need at least "
-                f"{count * at_least} bytes, but the file holds {body} after its header"
-            )
-    return None
+    """The PLY header's element counts against the file's size (the worker checks the same
+    when it loads the file); a header longer than ``head`` is left to the worker."""
+    if b"end_header" not in head and len(head) < size_bytes:
+        return None
+    return ply_count_problem(head, size_bytes)
 
 
 def _check_name_free(session: Session, name: str) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
+from app.formats.ply import ply_count_problem
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Points
 from workers.pipeline.model.options import UNITS_TO_M, ModelOptions
@@ -24,13 +25,6 @@ class ModelFileError(InputError):
     code = "InvalidModelFile"
 
 
-# Bytes of one PLY scalar (binary) by type name.
-_PLY_SCALAR_BYTES = {
-    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
-    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-    "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-    "double": 8, "float64": 8,
-}  # fmt: skip
 _HEADER_MAX_BYTES = 64 * 1024
 
 
@@ -47,43 +41,19 @@ def check_model_header(path: Path) -> None:
     with path.open("rb") as fh:
         head = fh.read(_HEADER_MAX_BYTES)
     if suffix == ".ply":
-        body_bytes, needed = _ply_needs(head, size, path.name)
-    else:
-        body_bytes, needed = _off_needs(head, size, path.name)
+        if not head.startswith(b"ply") or b"end_header" not in head:
+            raise ModelFileError(f"{path.name}: not a PLY file with a complete header")
+        problem = ply_count_problem(head, size)
+        if problem is not None:
+            raise ModelFileError(f"{path.name}: {problem}")
+        return
+    body_bytes, needed = _off_needs(head, size, path.name)
     for what, count, at_least in needed:
         if count < 0 or count * at_least > body_bytes:
             raise ModelFileError(
                 f"{path.name}: the header declares {count} {what}, which need at least "
                 f"{count * at_least} bytes, but the file holds {body_bytes} after its header"
             )
-
-
-def _ply_needs(head: bytes, size: int, name: str) -> tuple[int, list[tuple[str, int, int]]]:
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
-        raise ModelFileError(f"{name}: not a PLY file with a complete header")
-    newline = head.find(b"\n", end)
-    body_bytes = size - (newline + 1 if newline >= 0 else len(head))
-    binary = False
-    needed: list[tuple[str, int, int]] = []
-    for raw in head[:end].decode("latin-1").splitlines():
-        words = raw.split()
-        if len(words) >= 2 and words[0] == "format":
-            binary = words[1].startswith("binary")
-        elif len(words) == 3 and words[0] == "element":
-            try:
-                count = int(words[2])
-            except ValueError:
-                raise ModelFileError(f"{name}: element {words[1]!r} has no count") from None
-            needed.append((f"{words[1]} elements", count, 0))
-        elif len(words) >= 3 and words[0] == "property" and needed:
-            what, count, at_least = needed[-1]
-            kind = words[2] if words[1] == "list" else words[1]
-            if kind not in _PLY_SCALAR_BYTES:
-                raise ModelFileError(f"{name}: unknown PLY property type {kind!r}")
-            at_least += _PLY_SCALAR_BYTES[kind] if binary else 2
-            needed[-1] = (what, count, at_least)
-    return body_bytes, needed
 
 
 def _off_needs(head: bytes, size: int, name: str) -> tuple[int, list[tuple[str, int, int]]]:

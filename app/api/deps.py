@@ -9,6 +9,7 @@ from typing import Annotated, Any
 from fastapi import Depends, Request
 from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import Headers
 
 from app.core import auth
 from app.core.auth import Principal
@@ -39,9 +40,9 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 StorageDep = Annotated[LocalStorage, Depends(get_storage)]
 
 
-def _bearer(request: Request) -> str | None:
-    header = request.headers.get("authorization", "")
-    scheme, _, token = header.partition(" ")
+def bearer(headers: Headers) -> str | None:
+    """The token of an ``Authorization: Bearer <token>`` header, or None."""
+    scheme, _, token = headers.get("authorization", "").partition(" ")
     return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
@@ -80,7 +81,13 @@ async def authenticate_request(
 
 def _require(scope: Scope) -> Callable[[Request], Awaitable[Principal]]:
     async def check(request: Request) -> Principal:
-        return await authenticate_request(request.app, _client(request), _bearer(request), scope)
+        # BodyGuard already looked the key up for a request with a body (before reading it)
+        known: Principal | None = getattr(request.state, "principal", None)
+        if known is not None:
+            return auth.require_scope(known, scope)
+        return await authenticate_request(
+            request.app, _client(request), bearer(request.headers), scope
+        )
 
     return check
 

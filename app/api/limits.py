@@ -24,7 +24,7 @@ import re
 from starlette.datastructures import Headers
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.api.deps import authenticate_request
+from app.api.deps import authenticate_request, bearer
 from app.core.errors import DomainError
 from app.core.settings import Settings, get_settings
 
@@ -51,11 +51,6 @@ def body_limit(method: str, path: str, settings: Settings) -> tuple[int, str]:
 
 class _TooLarge(Exception):
     """Raised from ``receive`` when a chunked body passes its cap."""
-
-
-def _bearer(headers: Headers) -> str | None:
-    scheme, _, token = headers.get("authorization", "").partition(" ")
-    return token.strip() if scheme.lower() == "bearer" and token.strip() else None
 
 
 async def _answer(
@@ -95,8 +90,10 @@ class BodyGuard:
             return
         try:
             client = scope["client"][0] if scope.get("client") else "unknown"
-            # Any valid key passes (scope None); the route's dependency checks its scope.
-            await authenticate_request(scope["app"], client, _bearer(headers), None)
+            # Any valid key passes (scope None); the route's dependency checks its scope on
+            # this principal instead of looking the key up again.
+            principal = await authenticate_request(scope["app"], client, bearer(headers), None)
+            scope.setdefault("state", {})["principal"] = principal
         except DomainError as exc:  # 401 (or whatever the key check answers, e.g. 429)
             await _answer(send, exc.status_code, exc.code, exc.detail, exc.headers)
             return

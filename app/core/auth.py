@@ -161,13 +161,18 @@ def authenticate(session: Session, token: str | None, needed: Scope | None) -> P
         raise Unauthorized("unknown or revoked API key")
     envs = None if row.environment_ids is None else tuple(row.environment_ids)
     principal = Principal(row.id, row.name, tuple(row.scopes), envs)
-    if needed is not None and not principal.holds(needed):
-        if needed in effective_scopes(principal.scopes):
-            raise Forbidden(
-                f"this key is limited to environments; '{needed}' covers every environment"
-            )
-        raise Forbidden(f"this key's scopes {list(principal.scopes)} do not include '{needed}'")
+    if needed is not None:
+        require_scope(principal, needed)
     return principal
+
+
+def require_scope(principal: Principal, needed: Scope) -> Principal:
+    """``principal`` when it holds scope ``needed``; 403 otherwise."""
+    if principal.holds(needed):
+        return principal
+    if needed in effective_scopes(principal.scopes):
+        raise Forbidden(f"this key is limited to environments; '{needed}' covers every environment")
+    raise Forbidden(f"this key's scopes {list(principal.scopes)} do not include '{needed}'")
 
 
 def can_reach(principal: Principal, environment_id: str) -> bool:

@@ -272,3 +272,27 @@ def test_revocation_is_seen_at_once_by_a_fresh_lookup(
         row.revoked_at = auth.utcnow()
     r = client.get("/v1/environments", headers=headers)
     assert r.status_code == 401, r.text
+
+
+def test_a_request_with_a_body_looks_its_key_up_once(
+    client: TestClient, keys: Keys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """BodyGuard checks the key before the body is read; the route's scope check uses that
+    principal (403 for the wrong scope) instead of a second database lookup."""
+    calls: list[object] = []
+    real = auth.authenticate
+
+    def counted(*args: object, **kwargs: object) -> auth.Principal:
+        calls.append(args)
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(auth, "authenticate", counted)
+    r = client.post("/v1/keys", json={"name": "other", "scopes": ["read"]}, headers=keys.headers())
+    assert r.status_code == 201, r.text
+    assert len(calls) == 1
+    calls.clear()
+    r = client.post(
+        "/v1/keys", json={"name": "x", "scopes": ["read"]}, headers=keys.headers("read")
+    )
+    assert r.status_code == 403 and r.json()["error"] == "Forbidden", r.text
+    assert len(calls) == 1

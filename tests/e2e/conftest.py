@@ -129,9 +129,9 @@ class Processes:
         self.procs[name] = proc
         return proc
 
-    def api(self, port: int) -> None:
+    def api(self, port: int, name: str = "api") -> None:
         self.start(
-            "api",
+            name,
             [
                 sys.executable,
                 "-m",

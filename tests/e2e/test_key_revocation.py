@@ -3,7 +3,6 @@ other on its very next request (no per-process cache of valid keys)."""
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable
 
@@ -17,22 +16,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
 def start_api(procs: Processes, name: str) -> httpx.Client:
     port = free_port()
-    procs.start(
-        name,
-        [
-            sys.executable,
-            "-m",
-            "uvicorn",
-            "app.main:create_app",
-            "--factory",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-            "--log-level",
-            "warning",
-        ],
-    )
+    procs.api(port, name)
     return api_client(port)
 
 

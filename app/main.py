@@ -25,6 +25,7 @@ from app.api.routes import (
     keys,
     objects,
     snapshots,
+    uploads,
     webhooks,
 )
 from app.core import auth, ingest
@@ -121,9 +122,11 @@ def create_app() -> FastAPI:
 
     app.add_middleware(JsonGuard)
     app.add_middleware(BodyGuard)  # key and size checked before a body is read
+    app.add_middleware(uploads.TusHeaders)  # Tus-Resumable on /v1/uploads, 412 otherwise
     app.add_middleware(metrics_routes.MetricsMiddleware)
     app.include_router(health.router)
     app.include_router(metrics_routes.router)
-    for module in (keys, objects, environments, snapshots, jobs, comparisons, webhooks):
+    routers = (keys, objects, environments, snapshots, uploads, jobs, comparisons, webhooks)
+    for module in routers:
         app.include_router(module.router, prefix="/v1")
     return app

@@ -92,3 +92,13 @@ class DeliveryState(StrEnum):
     pending = "pending"
     succeeded = "succeeded"
     failed = "failed"
+
+
+class UploadState(StrEnum):
+    """A resumable (tus) upload: bytes arriving, the archive being ingested, a snapshot
+    made, or refused (its error kept, its bytes gone)."""
+
+    receiving = "receiving"
+    processing = "processing"
+    completed = "completed"
+    failed = "failed"

@@ -36,6 +36,7 @@ from app.core.enums import (
     JobState,
     ObjectState,
     SnapshotState,
+    UploadState,
 )
 
 
@@ -405,3 +406,32 @@ class DeliveryAttempt(Base):
     latency_ms: Mapped[float | None] = mapped_column(Float)
     response_excerpt: Mapped[str | None] = mapped_column(Text)
     error: Mapped[str | None] = mapped_column(Text)
+
+
+class ResumableUpload(Base):
+    """One resumable (tus) upload of a capture archive. Its bytes so far are the file at
+    ``storage_key`` (the file's size is the upload's offset); once the last byte arrived the
+    archive is ingested like a single-request upload and the file goes."""
+
+    __tablename__ = "resumable_uploads"
+    __table_args__ = (Index("ix_resumable_uploads_env_key", "environment_id", "idempotency_key"),)
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    environment_id: Mapped[str] = mapped_column(
+        ForeignKey("environments.id", ondelete="CASCADE"), index=True
+    )
+    state: Mapped[UploadState] = mapped_column(String(20), default=UploadState.receiving)
+    length: Mapped[int] = mapped_column(BigInteger)  # bytes, Upload-Length
+    filename: Mapped[str] = mapped_column(String(255))
+    idempotency_key: Mapped[str | None] = mapped_column(String(200))
+    sha256: Mapped[str | None] = mapped_column(String(64))  # of the whole archive, if declared
+    storage_key: Mapped[str] = mapped_column(String(500))
+    # set when the upload became a snapshot (not foreign keys: the rows outlive neither)
+    snapshot_id: Mapped[str | None] = mapped_column(String(36))
+    job_id: Mapped[str | None] = mapped_column(String(36))
+    error_status: Mapped[int | None] = mapped_column(Integer)
+    error_code: Mapped[str | None] = mapped_column(String(100))
+    error_detail: Mapped[str | None] = mapped_column(Text)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+    expires_at: Mapped[datetime] = mapped_column(UtcDateTime, index=True)
+    completed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)

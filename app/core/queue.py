@@ -35,6 +35,7 @@ TASK_QUEUES: dict[str, str] = {
     "webhooks.dispatch": MAINTENANCE_QUEUE,
     "maintenance.sweep": MAINTENANCE_QUEUE,
     "maintenance.retention": MAINTENANCE_QUEUE,
+    "maintenance.uploads": MAINTENANCE_QUEUE,
 }
 _PENDING = "twindelta_pending_tasks"
 
@@ -78,6 +79,10 @@ def celery_config(settings: Settings) -> dict[str, Any]:
             "retention": {
                 "task": "maintenance.retention",
                 "schedule": settings.retention_interval_s,
+            },
+            "uploads": {
+                "task": "maintenance.uploads",
+                "schedule": settings.upload_sweep_interval_s,
             },
             "webhooks-dispatch": {
                 "task": "webhooks.dispatch",

@@ -49,6 +49,13 @@ class Settings(BaseSettings):
     # a snapshot upload at ``max_upload_bytes`` and an object model at ``max_file_bytes``
     # (each plus the multipart framing).
     max_json_bytes: int = 2 * 1024**2
+    # Resumable (tus) uploads under /v1/uploads: one PATCH carries at most
+    # ``max_upload_chunk_bytes`` (the whole upload at most ``max_upload_bytes``); an upload
+    # not written to for ``upload_expiry_s`` expires and beat's ``maintenance.uploads``
+    # (every ``upload_sweep_interval_s``) deletes its bytes and, once expired, its record.
+    max_upload_chunk_bytes: int = Field(default=512 * 1024**2, gt=0)
+    upload_expiry_s: float = Field(default=24 * 3600.0, gt=0)
+    upload_sweep_interval_s: float = Field(default=300.0, gt=0)
 
     # Jobs: a running job whose heartbeat is older than this is failed by the sweeper; a
     # queued job older than ``requeue_after_s`` is sent again (a lost broker message).

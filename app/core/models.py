@@ -340,6 +340,11 @@ class WebhookSubscription(Base):
     active: Mapped[bool] = mapped_column(Boolean, default=True)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     deactivated_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    # the body's shape (app.core.webhooks.adapters.WebhookFormat): cloudevents, or one
+    # platform adapter's patch per changed twin instance
+    format: Mapped[str] = mapped_column(
+        String(40), default="cloudevents", server_default="cloudevents"
+    )
 
 
 class Event(Base):
@@ -391,6 +396,11 @@ class Delivery(Base):
     last_error: Mapped[str | None] = mapped_column(Text)
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     finished_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    # Platform adapter deliveries (one per changed twin instance): the instance, and the body
+    # rendered at fan-out (a JSON Patch list or a merge patch object). Both None for a
+    # CloudEvents delivery, whose body is rendered from its event.
+    instance_id: Mapped[str | None] = mapped_column(String(36))
+    payload: Mapped[Json | None] = mapped_column(JSON)
 
 
 class DeliveryAttempt(Base):

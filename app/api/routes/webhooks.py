@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Query, status
 
-from app.api.deps import AdminKey, SessionDep, SettingsDep
+from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep
 from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.webhooks import (
     DeliveryRead,
@@ -31,9 +31,18 @@ def create_webhook(
         url=body.url,
         event_types=body.event_types,
         environment_id=body.environment_id,
+        fmt=body.format,
     )
     secret = webhooks.current_secret(settings, sub)
     return WebhookCreated(**WebhookRead.model_validate(sub).model_dump(), secret=secret)
+
+
+@router.get("/schemas/events")
+def event_schema(_key: ReadKey) -> dict[str, Any]:
+    """The JSON Schema (2020-12) of CloudEvents deliveries: `$defs/<event type>` is each
+    type's `data`. Its `$id` (`urn:twindelta:events:1`) is what every event's `dataschema`
+    points into (`urn:twindelta:events:1#/$defs/<type>`)."""
+    return webhooks.event_schema()
 
 
 @router.get("")

@@ -1,12 +1,30 @@
 from __future__ import annotations
 
 from datetime import datetime
+from typing import Annotated, Any
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, BeforeValidator, Field
 
 from app.api.schemas.common import Model
 from app.core.enums import DeliveryState, EventType
 from app.core.models import Delivery, DeliveryAttempt, Event
+from app.core.webhooks.adapters import WebhookFormat
+
+
+def _known_format(value: Any) -> Any:
+    """Refuse an unknown format naming it (the enum's own message does not)."""
+    if isinstance(value, str) and value not in {f.value for f in WebhookFormat}:
+        known = ", ".join(f.value for f in WebhookFormat)
+        raise ValueError(f"unknown format {value!r}; one of {known}")
+    return value
+
+
+FORMAT_DESCRIPTION = (
+    "the body: `cloudevents` (one CloudEvents 1.0 JSON per event, every type), "
+    "`azure-digital-twins` (a JSON Patch per changed twin instance, for Update DigitalTwin) "
+    "or `eclipse-ditto` (a JSON merge patch per changed thing); the two adapters receive "
+    "only twin.updated"
+)
 
 
 class WebhookCreate(BaseModel):
@@ -21,6 +39,9 @@ class WebhookCreate(BaseModel):
     environment_id: str | None = Field(
         default=None, description="only events of this environment; default every one"
     )
+    format: Annotated[WebhookFormat, BeforeValidator(_known_format)] = Field(
+        default=WebhookFormat.cloudevents, description=FORMAT_DESCRIPTION
+    )
 
 
 class WebhookRead(Model):
@@ -28,6 +49,7 @@ class WebhookRead(Model):
     url: str
     event_types: list[EventType]
     environment_id: str | None
+    format: WebhookFormat = Field(description=FORMAT_DESCRIPTION)
     active: bool
     created_at: datetime
     deactivated_at: datetime | None
@@ -56,9 +78,13 @@ class AttemptRead(Model):
 class DeliveryRead(BaseModel):
     id: str
     webhook: str
-    event: str = Field(description="the event id, sent as webhook-id on every attempt")
+    event: str = Field(description="the event id")
     event_type: EventType
     subject: str | None
+    instance_id: str | None = Field(
+        description="platform adapter formats: the twin instance whose patch this delivery "
+        "carries (webhook-id is then '<event>:<instance_id>'; otherwise the event id)"
+    )
     state: DeliveryState
     next_attempt_at: datetime | None
     last_status_code: int | None
@@ -75,6 +101,7 @@ class DeliveryRead(BaseModel):
             event=event.id,
             event_type=EventType(event.type),
             subject=event.subject,
+            instance_id=delivery.instance_id,
             state=delivery.state,
             next_attempt_at=(
                 delivery.next_attempt_at if delivery.state == DeliveryState.pending else None

@@ -2,7 +2,9 @@
 
 Modules: :mod:`.signing` (Standard Webhooks signatures), :mod:`.targets` (which addresses
 may receive), :mod:`.subscriptions` (and their secrets), :mod:`.fanout` (event to deliveries),
-:mod:`.payload` (the CloudEvents body), :mod:`.delivery` (claim, send, record),
+:mod:`.payload` (the CloudEvents body), :mod:`.eventschema` (its published JSON Schema),
+:mod:`.adapters` (Azure Digital Twins and Eclipse Ditto bodies, one per changed twin
+instance), :mod:`.delivery` (claim, send, record),
 :mod:`.transport` (the pinned, deadline-bound connection), :mod:`.dispatch` (beat's
 dispatcher), :mod:`.delivery_log` (the log and redelivery). Import from this package.
 
@@ -47,6 +49,16 @@ the receiver's side. Secrets are stored encrypted (:mod:`app.core.secretbox`).
 
 from __future__ import annotations
 
+from app.core.webhooks.adapters import (
+    ADT_MODEL_ID,
+    CONTENT_TYPES,
+    InstanceChange,
+    WebhookFormat,
+    adt_patch,
+    ditto_merge_patch,
+    ditto_thing_id,
+    instance_changes,
+)
 from app.core.webhooks.delivery import (
     LEASE_MARGIN_S,
     Claim,
@@ -67,6 +79,11 @@ from app.core.webhooks.delivery_log import (
 from app.core.webhooks.dispatch import (
     REDISPATCH_AFTER_S,
     dispatch_due,
+)
+from app.core.webhooks.eventschema import (
+    EVENTS_SCHEMA_ID,
+    dataschema,
+    event_schema,
 )
 from app.core.webhooks.fanout import (
     DELIVER_TASK,
@@ -108,17 +125,23 @@ from app.core.webhooks.transport import (
 )
 
 __all__ = [
+    "ADT_MODEL_ID",
+    "CONTENT_TYPES",
     "DELIVER_TASK",
     "DISPATCH_TASK",
+    "EVENTS_SCHEMA_ID",
     "LEASE_MARGIN_S",
     "REDISPATCH_AFTER_S",
     "SECRET_PREFIX",
     "Claim",
+    "InstanceChange",
     "IpAddress",
     "Network",
     "Outcome",
     "Target",
+    "WebhookFormat",
     "WebhookVerificationError",
+    "adt_patch",
     "allowed_networks",
     "attempt_budget_s",
     "check_target",
@@ -126,12 +149,17 @@ __all__ = [
     "cloudevent",
     "create_subscription",
     "current_secret",
+    "dataschema",
     "deactivate",
     "describe",
     "dispatch_due",
+    "ditto_merge_patch",
+    "ditto_thing_id",
+    "event_schema",
     "fan_out",
     "get_delivery",
     "get_subscription",
+    "instance_changes",
     "lease_s",
     "list_deliveries",
     "list_subscriptions",

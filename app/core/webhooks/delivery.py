@@ -26,6 +26,7 @@ from app.core import queue, secretbox
 from app.core.enums import DeliveryState
 from app.core.models import Delivery, DeliveryAttempt, Event, WebhookSubscription, utcnow
 from app.core.settings import Settings
+from app.core.webhooks.adapters import CONTENT_TYPES, WebhookFormat, message_id, target_headers
 from app.core.webhooks.fanout import DELIVER_TASK
 from app.core.webhooks.payload import cloudevent
 from app.core.webhooks.signing import signed_headers
@@ -43,7 +44,6 @@ log = logging.getLogger(__name__)
 EXCERPT_BYTES = 1024
 JITTER = 0.2
 USER_AGENT = "twindelta-webhooks/1"
-CONTENT_TYPE = "application/cloudevents+json; charset=utf-8"
 # A claim's lease outlasts the attempt's deadline by this much (the watchdog's grace, the
 # claim and record transactions); an attempt that could not finish inside it is not started.
 LEASE_MARGIN_S = 30.0
@@ -59,9 +59,11 @@ class Claim:
     run_attempt: int
     url: str
     secrets: tuple[str, ...] = field(repr=False)  # the signing secrets, newest first
-    event_id: str
+    message_id: str  # webhook-id: the event id (and instance, for an adapter body)
     body: bytes
     lease_until: datetime
+    content_type: str = CONTENT_TYPES[WebhookFormat.cloudevents]
+    headers: tuple[tuple[str, str], ...] = ()  # more headers of the format (adapters)
 
 
 @dataclass(frozen=True)
@@ -135,12 +137,20 @@ def claim(
             Delivery.run_attempts,
             Delivery.subscription_id,
             Delivery.event_id,
+            Delivery.instance_id,
+            Delivery.payload,
         )
         .execution_options(synchronize_session=False)
     ).first()
-    if row is None:
-        return None
-    claimed_id, attempt, run_attempt, subscription_id, event_id = row
+    return None if row is None else _prepare(session, settings, tuple(row), now)
+
+
+def _prepare(
+    session: Session, settings: Settings, row: tuple[Any, ...], now: datetime
+) -> Claim | None:
+    """The claimed attempt's request (None, and the delivery failed, when its subscription
+    is gone or deactivated)."""
+    claimed_id, attempt, run_attempt, subscription_id, event_id, instance_id, payload = row
     sub = session.get(WebhookSubscription, subscription_id)
     event = session.get(Event, event_id)
     if sub is None or event is None or not sub.active:
@@ -156,14 +166,29 @@ def claim(
             .execution_options(synchronize_session=False)
         )
         return None
-    body = json.dumps(cloudevent(event), separators=(",", ":"), ensure_ascii=False).encode()
-    lease_until = now + timedelta(seconds=lease_s(settings))
     try:
         keys = signing_secrets(settings, sub, now)
     except secretbox.SecretUnreadable as exc:  # the attempt is logged as failed, not lost
         log.error("delivery %s: %s", claimed_id, exc.detail)
         keys = ()
-    return Claim(claimed_id, attempt, run_attempt, sub.url, keys, event.id, body, lease_until)
+    headers: tuple[tuple[str, str], ...] = ()
+    if instance_id is None:  # one CloudEvent per event
+        fmt, doc = WebhookFormat.cloudevents, cloudevent(event)
+    else:  # an adapter body, rendered at fan-out
+        fmt, doc = WebhookFormat(sub.format), payload
+        headers = tuple(target_headers(fmt, event, instance_id).items())
+    return Claim(
+        delivery_id=claimed_id,
+        attempt=attempt,
+        run_attempt=run_attempt,
+        url=sub.url,
+        secrets=keys,
+        message_id=message_id(event.id, instance_id),
+        body=json.dumps(doc, separators=(",", ":"), ensure_ascii=False).encode(),
+        lease_until=now + timedelta(seconds=lease_s(settings)),
+        content_type=CONTENT_TYPES[fmt],
+        headers=headers,
+    )
 
 
 def attempt_budget_s(claim: Claim, settings: Settings) -> float:
@@ -190,8 +215,10 @@ def send(claim: Claim, settings: Settings) -> Outcome:
         if not claim.secrets:
             raise Refused("the signing secret cannot be decrypted (TWINDELTA_SECRET_KEY)")
         target = resolve_within(claim.url, allowed_networks(settings), deadline)
-        headers = signed_headers(claim.secrets, claim.event_id, claim.body, int(time.time()))
-        headers.update({"content-type": CONTENT_TYPE, "user-agent": USER_AGENT})
+        headers = dict(claim.headers)
+        stamp = int(time.time())
+        headers.update(signed_headers(claim.secrets, claim.message_id, claim.body, stamp))
+        headers.update({"content-type": claim.content_type, "user-agent": USER_AGENT})
         backend = PinnedBackend(target.addresses, deadline)
         watchdog = threading.Timer(max(deadline.left(), 0.0) + ABORT_GRACE_S, backend.abort)
         watchdog.daemon = True

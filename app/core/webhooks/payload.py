@@ -6,10 +6,12 @@ from datetime import UTC, datetime
 from typing import Any
 
 from app.core.models import Event
+from app.core.webhooks.eventschema import dataschema
 
 
 def cloudevent(event: Event) -> dict[str, Any]:
-    """The CloudEvents 1.0 structured form of an event; ``data`` is passed verbatim."""
+    """The CloudEvents 1.0 structured form of an event; ``data`` is passed verbatim and
+    ``dataschema`` names its JSON Schema (:mod:`.eventschema`)."""
     source = (
         f"/twindelta/environments/{event.environment_id}" if event.environment_id else "/twindelta"
     )
@@ -20,6 +22,7 @@ def cloudevent(event: Event) -> dict[str, Any]:
         "type": str(event.type),
         "time": aware(event.created_at).isoformat().replace("+00:00", "Z"),
         "datacontenttype": "application/json",
+        "dataschema": dataschema(str(event.type)),
         "data": event.data,
     }
     if event.subject is not None:

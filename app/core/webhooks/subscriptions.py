@@ -14,6 +14,7 @@ from app.core.enums import DeliveryState, EventType
 from app.core.errors import Conflict, InvalidInput, NotFound
 from app.core.models import Delivery, Environment, WebhookSubscription, utcnow
 from app.core.settings import Settings
+from app.core.webhooks.adapters import ADAPTER_EVENT_TYPES, WebhookFormat
 from app.core.webhooks.payload import aware
 from app.core.webhooks.signing import new_secret
 from app.core.webhooks.targets import allowed_networks, check_target
@@ -26,10 +27,16 @@ def create_subscription(
     url: str,
     event_types: Iterable[EventType] | None,
     environment_id: str | None,
+    fmt: str = WebhookFormat.cloudevents,
 ) -> WebhookSubscription:
-    """A new active subscription with a fresh secret (the caller shows it once)."""
+    """A new active subscription with a fresh secret (the caller shows it once).
+
+    ``fmt`` is a :class:`WebhookFormat` (422 naming it otherwise). A platform adapter
+    format receives only ``twin.updated`` (one patch per changed instance); its
+    ``event_types`` default to that, and any other type is refused (422)."""
+    body_format = _format(fmt)
     check_target(url, allowed_networks(settings))
-    types = sorted({EventType(t) for t in event_types} if event_types else set(EventType))
+    types = _event_types(body_format, event_types)
     if environment_id is not None and session.get(Environment, environment_id) is None:
         raise InvalidInput(f"environment_id: environment {environment_id} not found")
     sub = WebhookSubscription(
@@ -38,10 +45,33 @@ def create_subscription(
         environment_id=environment_id,
         secret_encrypted=secretbox.encrypt(settings, new_secret()),
         active=True,
+        format=str(body_format),
     )
     session.add(sub)
     session.flush()
     return sub
+
+
+def _format(value: str) -> WebhookFormat:
+    try:
+        return WebhookFormat(value)
+    except ValueError:
+        known = ", ".join(f.value for f in WebhookFormat)
+        raise InvalidInput(f"format: unknown format {value!r}; one of {known}") from None
+
+
+def _event_types(fmt: WebhookFormat, asked: Iterable[EventType] | None) -> list[EventType]:
+    if fmt == WebhookFormat.cloudevents:
+        return sorted({EventType(t) for t in asked} if asked else set(EventType))
+    types = {EventType(t) for t in asked} if asked else set(ADAPTER_EVENT_TYPES)
+    other = sorted(types - ADAPTER_EVENT_TYPES)
+    if other:
+        raise InvalidInput(
+            f"event_types: format {fmt} sends only "
+            f"{', '.join(sorted(ADAPTER_EVENT_TYPES))} (one patch per changed twin instance); "
+            f"not {', '.join(other)}"
+        )
+    return sorted(types)
 
 
 def current_secret(settings: Settings, sub: WebhookSubscription) -> str:

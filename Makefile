@@ -65,6 +65,15 @@ test-tools:
 	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends docker-compose >/dev/null; \
 	  else echo "Install docker-compose first: sudo apt-get install docker-compose"; exit 1; fi; }
+	@command -v npm >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing nodejs and npm (the Khronos glTF validator the export tests run)"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null; \
+	  else echo "Install nodejs and npm first: sudo apt-get install nodejs npm"; exit 1; fi; }
+	@[ -d tools/gltf-validator/node_modules ] || { \
+	  echo "installing the glTF validator (tools/gltf-validator, from its package-lock.json)"; \
+	  cd tools/gltf-validator && npm ci --no-audit --no-fund --loglevel=error; }
 
 test: install test-tools
 	$(VENV)/bin/pytest -q $(PYTEST_ARGS)

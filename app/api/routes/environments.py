@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Response, status
+from typing import Annotated
 
+from fastapi import APIRouter, Query, Request, Response, status
+
+from app.api import negotiate
 from app.api.deps import AdminKey, ReadKey, SessionDep, StorageDep
 from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.comparisons import ComparisonCreate, ComparisonRead
@@ -16,8 +19,10 @@ from app.api.schemas.environments import (
     TwinProgressRead,
     TwinStateRead,
 )
+from app.api.schemas.exports import BINARY, GLB_MEDIA_TYPE, STATE_MEDIA_TYPES, StateFormat
 from app.api.schemas.snapshots import SnapshotRead
 from app.core import auth, comparisons, environments, retention, snapshots, twin
+from app.core.export import twin_scene
 
 router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
 
@@ -120,26 +125,71 @@ def list_comparisons(
     return [ComparisonRead.of(c) for c in comparisons.list_for(session, environment_id)]
 
 
-@router.get("/{environment_id}/state")
-def get_state(environment_id: str, session: SessionDep, key: ReadKey) -> TwinStateRead:
-    """The twin as it stands: every instance present, with its current pose."""
+@router.get(
+    "/{environment_id}/state",
+    response_model=TwinStateRead,
+    responses={
+        200: {
+            "description": "JSON, or binary glTF 2.0 (format=glb or Accept: model/gltf-binary)",
+            "content": {GLB_MEDIA_TYPE: BINARY},
+        },
+        406: {"model": ErrorOut, "description": "Accept allows neither JSON nor glTF"},
+        **conflict("SnapshotNotApplied: the twin has not reflected that snapshot"),
+    },
+)
+def get_state(
+    environment_id: str,
+    request: Request,
+    session: SessionDep,
+    storage: StorageDep,
+    key: ReadKey,
+    format: Annotated[
+        StateFormat | None,
+        Query(description="json or glb; overrides Accept (default: by Accept, else json)"),
+    ] = None,
+    snapshot: Annotated[
+        str | None,
+        Query(
+            max_length=36,
+            description="a snapshot of this environment (its twin_update baseline or "
+            "applied): the twin as it stood once that snapshot was taken into account",
+        ),
+    ] = None,
+) -> TwinStateRead | Response:
+    """The twin as it stands (or at ``snapshot``): every instance present with its pose, as
+    JSON or as a binary glTF scene of the library models (docs/contract.md, "Export")."""
     auth.require_environment(key, environment_id)
     env = environments.get(session, environment_id)
+    chosen = (
+        format
+        or STATE_MEDIA_TYPES[
+            negotiate.choose(request.headers.get("accept"), list(STATE_MEDIA_TYPES))
+        ]
+    )
+    state = twin_scene.view(session, env, snapshot)
+    if chosen == StateFormat.glb:
+        name = f"{environment_id}-{state.seq}.glb"
+        return Response(
+            twin_scene.glb(session, storage, state),
+            media_type=GLB_MEDIA_TYPE,
+            headers={"Content-Disposition": f'attachment; filename="{name}"'},
+        )
     return TwinStateRead(
         environment=environment_id,
         twin=TwinProgressRead.of(twin.progress(session, env)),
+        at_snapshot=state.snapshot_id if state.at_snapshot else None,
         objects=[
             InstanceRead(
-                instance_id=i.id,
+                instance_id=i.instance_id,
                 object=i.object_name,
                 object_id=i.object_id,
                 pose=i.pose,
                 pose_quality=i.pose_quality,
-                since_snapshot=i.since_snapshot_id,
-                created_snapshot=i.created_snapshot_id,
+                since_snapshot=i.since_snapshot,
+                created_snapshot=i.created_snapshot,
                 created_at=i.created_at,
             )
-            for i in twin.current(session, environment_id)
+            for i in state.instances
         ],
     )
 

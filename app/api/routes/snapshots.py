@@ -5,16 +5,25 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, File, Header, Response, UploadFile, status
+from fastapi import APIRouter, Depends, File, Header, Query, Request, Response, UploadFile, status
 from fastapi.responses import StreamingResponse
 
+from app.api import negotiate
 from app.api.deps import AdminKey, CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, MALFORMED, ErrorOut, conflict
+from app.api.schemas.exports import (
+    BINARY,
+    CLOUD_MEDIA_TYPES,
+    LAZ_MEDIA_TYPE,
+    PLY_MEDIA_TYPE,
+    CloudFormat,
+)
 from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
 from app.core import auth, ingest, retention, snapshots
 from app.core.db import get_read_session_factory
 from app.core.errors import Conflict
+from app.core.export import laz, twin_scene
 
 router = APIRouter(tags=["snapshots"], responses=ERRORS)
 
@@ -138,24 +147,53 @@ def delete_snapshot(
     "/snapshots/{snapshot_id}/pointcloud",
     response_class=StreamingResponse,
     responses={
-        200: {"content": {"application/octet-stream": {}}},
-        **conflict("PointCloudNotReady: the snapshot is not reconstructed (yet)"),
+        200: {
+            "description": "binary PLY, or LAZ (format=laz or Accept: application/vnd.laszip)",
+            "content": {PLY_MEDIA_TYPE: BINARY, LAZ_MEDIA_TYPE: BINARY},
+        },
+        406: {"model": ErrorOut, "description": "Accept allows neither PLY nor LAZ"},
+        **conflict(
+            "PointCloudNotReady: the snapshot is not reconstructed (yet); "
+            "PointCloudUnreadable: the stored cloud cannot be converted"
+        ),
+        507: {"model": ErrorOut, "description": "storage full: the LAZ could not be written"},
     },
 )
 def get_pointcloud(
-    snapshot_id: str, session: SessionDep, storage: StorageDep, key: ReadKey
+    snapshot_id: str,
+    request: Request,
+    session: SessionDep,
+    storage: StorageDep,
+    key: ReadKey,
+    format: Annotated[
+        CloudFormat | None,
+        Query(description="ply or laz; overrides Accept (default: by Accept, else ply)"),
+    ] = None,
 ) -> StreamingResponse:
-    """The reconstructed cloud: binary PLY, coloured, in the environment frame (409 until
-    the snapshot is reconstructed)."""
+    """The reconstructed cloud in the environment frame: binary PLY, coloured, or LAZ
+    (converted once, then kept); 409 until the snapshot is reconstructed."""
     snap = snapshots.get(session, snapshot_id)
     auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
+    chosen = (
+        format
+        or CLOUD_MEDIA_TYPES[
+            negotiate.choose(request.headers.get("accept"), list(CLOUD_MEDIA_TYPES))
+        ]
+    )
     if not snap.pointcloud_key:
         raise Conflict(
             f"snapshot {snapshot_id} has no point cloud (state {snap.state})",
             code="PointCloudNotReady",
         )
+    if chosen == CloudFormat.laz:
+        laz_key = laz.ensure_laz(storage, snap.pointcloud_key, twin_scene.generator())
+        return StreamingResponse(
+            storage.iter_bytes(laz_key),
+            media_type=LAZ_MEDIA_TYPE,
+            headers={"Content-Disposition": f'attachment; filename="{snapshot_id}.laz"'},
+        )
     return StreamingResponse(
         storage.iter_bytes(snap.pointcloud_key),
-        media_type="application/octet-stream",
+        media_type=PLY_MEDIA_TYPE,
         headers={"Content-Disposition": f'attachment; filename="{snapshot_id}.ply"'},
     )

@@ -98,7 +98,15 @@ class InstanceRead(BaseModel):
 class TwinStateRead(BaseModel):
     environment: str
     objects: list[InstanceRead]
-    twin: TwinProgressRead = Field(description="which snapshot this state reflects")
+    twin: TwinProgressRead = Field(
+        description="where the twin stands now; without at_snapshot, the snapshot this "
+        "state reflects"
+    )
+    at_snapshot: str | None = Field(
+        default=None,
+        description="the snapshot asked for with ?snapshot=: objects are the twin as it "
+        "stood once that snapshot was taken into account (null: as it stands)",
+    )
 
 
 class PoseRecord(BaseModel):

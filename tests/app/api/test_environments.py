@@ -37,7 +37,12 @@ def test_create_and_read(client: TestClient, keys: Keys) -> None:
     state = client.get(f"/v1/environments/{env['id']}/state", headers=keys.headers("read"))
     twin = {"seq": 0, "snapshot": None, "status": "current", "waiting_for": None}
     twin["comparison"] = None
-    assert state.json() == {"environment": env["id"], "objects": [], "twin": twin}
+    assert state.json() == {
+        "environment": env["id"],
+        "objects": [],
+        "twin": twin,
+        "at_snapshot": None,
+    }
 
 
 def test_auth_missing_wrong_and_scope(client: TestClient, keys: Keys) -> None:

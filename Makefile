@@ -90,6 +90,7 @@ lint: install
 	$(VENV)/bin/twindelta openapi | diff -q - openapi/openapi.json >/dev/null || { echo "openapi/openapi.json is stale: run make openapi"; exit 1; }
 	$(VENV)/bin/python -m workers.pipeline option-schema | diff -q - app/core/option_schema.json >/dev/null || { echo "app/core/option_schema.json is stale: run make option-schema"; exit 1; }
 	$(VENV)/bin/python -m app.formats.cameras | diff -q - openapi/cameras.schema.json >/dev/null || { echo "openapi/cameras.schema.json is stale: run $(VENV)/bin/python -m app.formats.cameras > openapi/cameras.schema.json"; exit 1; }
+	$(VENV)/bin/python -m app.core.eventschema | diff -q - openapi/events.schema.json >/dev/null || { echo "openapi/events.schema.json is stale: run $(VENV)/bin/python -m app.core.eventschema > openapi/events.schema.json"; exit 1; }
 	$(VENV)/bin/python -m workers.pipeline option-docs | diff -q - docs/options.md >/dev/null || { echo "docs/options.md is stale: run make option-docs"; exit 1; }
 	$(VENV)/bin/python .ci/function_size.py app workers
 	$(VENV)/bin/ruff check --select C901 app workers

@@ -2,7 +2,7 @@
 
 Modules: :mod:`.signing` (Standard Webhooks signatures), :mod:`.targets` (which addresses
 may receive), :mod:`.subscriptions` (and their secrets), :mod:`.fanout` (event to deliveries),
-:mod:`.payload` (the CloudEvents body), :mod:`.eventschema` (its published JSON Schema),
+:mod:`.payload` (the CloudEvents body), :mod:`app.core.eventschema` (its published JSON Schema),
 :mod:`.adapters` (Azure Digital Twins and Eclipse Ditto bodies, one per changed twin
 instance), :mod:`.delivery` (claim, send, record),
 :mod:`.transport` (the pinned, deadline-bound connection), :mod:`.dispatch` (beat's
@@ -49,6 +49,11 @@ the receiver's side. Secrets are stored encrypted (:mod:`app.core.secretbox`).
 
 from __future__ import annotations
 
+from app.core.eventschema import (
+    EVENTS_SCHEMA_ID,
+    dataschema,
+    event_schema,
+)
 from app.core.webhooks.adapters import (
     ADT_MODEL_ID,
     CONTENT_TYPES,
@@ -79,11 +84,6 @@ from app.core.webhooks.delivery_log import (
 from app.core.webhooks.dispatch import (
     REDISPATCH_AFTER_S,
     dispatch_due,
-)
-from app.core.webhooks.eventschema import (
-    EVENTS_SCHEMA_ID,
-    dataschema,
-    event_schema,
 )
 from app.core.webhooks.fanout import (
     DELIVER_TASK,

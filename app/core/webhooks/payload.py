@@ -5,13 +5,13 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Any
 
+from app.core.eventschema import dataschema
 from app.core.models import Event
-from app.core.webhooks.eventschema import dataschema
 
 
 def cloudevent(event: Event) -> dict[str, Any]:
     """The CloudEvents 1.0 structured form of an event; ``data`` is passed verbatim and
-    ``dataschema`` names its JSON Schema (:mod:`.eventschema`)."""
+    ``dataschema`` names its JSON Schema (:mod:`app.core.eventschema`)."""
     source = (
         f"/twindelta/environments/{event.environment_id}" if event.environment_id else "/twindelta"
     )

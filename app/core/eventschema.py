@@ -194,5 +194,5 @@ def schema_text() -> str:
     return json.dumps(event_schema(), indent=2, ensure_ascii=False) + "\n"
 
 
-if __name__ == "__main__":  # python -m app.core.webhooks.eventschema > openapi/events.schema.json
+if __name__ == "__main__":  # python -m app.core.eventschema > openapi/events.schema.json
     sys.stdout.write(schema_text())

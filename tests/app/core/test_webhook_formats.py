@@ -399,3 +399,30 @@ def test_existing_subscriptions_become_cloudevents(tmp_path: Path) -> None:
             "cloudevents"
         )
     engine.dispose()
+
+
+def readme_block(after: str) -> Any:
+    """The first JSON code block after the line ``after`` in the README."""
+    text = (REPO_ROOT / "README.md").read_text()
+    rest = text[text.index(after) :]
+    start = rest.index("```json\n") + len("```json\n")
+    return json.loads(rest[start : rest.index("```", start)])
+
+
+def test_the_readme_examples_are_what_the_adapters_send() -> None:
+    moved = webhooks.InstanceChange(
+        instance_id="3f2c9a4e-0b7d-4e51-9c1a-6d2f8e7b1a90",
+        environment_id="0f8e5a1c-...",
+        object_class="power_drill",
+        library_object_id="a41b...",
+        change_type="moved",
+        present=True,
+        pose=[[0.0, -1.0, 0.0, 0.42], [1.0, 0.0, 0.0, 1.07], [0, 0, 1.0, 0], [0, 0, 0, 1.0]],
+        pose_verified=True,
+        snapshot_id="9c1d...",
+        seq=7,
+        comparison_id="7a1d...",
+        changed_at=datetime.fromisoformat("2026-11-24T05:08:53.144175+00:00"),
+    )
+    assert readme_block("A moved drill:") == webhooks.adt_patch(moved)
+    assert readme_block("The moved drill:") == webhooks.ditto_merge_patch(moved)

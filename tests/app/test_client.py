@@ -4,12 +4,21 @@ against a fake service (httpx.MockTransport): no server, no database."""
 from __future__ import annotations
 
 import json
+import tarfile
 from pathlib import Path
 
 import httpx
 import pytest
 
-from app.client import capture_parts, check, poll_job, upload_capture
+from app.client import (
+    ApiError,
+    Client,
+    capture_parts,
+    check,
+    pack_capture,
+    poll_job,
+    upload_capture,
+)
 
 
 def capture(tmp_path: Path, cameras: bool) -> Path:
@@ -78,3 +87,100 @@ def test_poll_job_returns_the_job_once_it_is_final(capsys: pytest.CaptureFixture
         job = poll_job(client, "j", "reconstruct")
     assert job["state"] == "succeeded"
     assert "100.0%  succeeded" in capsys.readouterr().out
+
+
+# --- the typed client ---------------------------------------------------------------------
+
+
+def test_pack_capture_is_deterministic_and_finds_only_capture_files(tmp_path: Path) -> None:
+    (tmp_path / "c").mkdir()
+    folder = capture(tmp_path / "c", cameras=True)
+    (folder / ".DS_Store").write_bytes(b"junk")
+    (folder / "notes.md").write_text("not part of a capture")
+    first = pack_capture(folder, tmp_path / "1.tar")
+    second = pack_capture(folder, tmp_path / "2.tar")
+    assert (first.sha256, first.idempotency_key) == (second.sha256, second.idempotency_key)
+    assert (first.n_images, first.n_labels, first.has_cameras) == (2, 2, True)
+    with tarfile.open(first.path) as tar:
+        assert sorted(tar.getnames()) == [
+            "cameras.json",
+            "images/a.jpg",
+            "images/b.jpg",
+            "labels/a.txt",
+            "labels/b.txt",
+        ]
+    (folder / "labels" / "a.txt").write_bytes(b"0 0.5 0.5 0.1 0.1\n")
+    assert pack_capture(folder, tmp_path / "3.tar").sha256 != first.sha256
+    with pytest.raises(ValueError, match="no images"):
+        pack_capture(tmp_path / "c" / "labels", tmp_path / "4.tar")
+
+
+def test_requests_are_retried_with_doubling_backoff_then_give_up() -> None:
+    answers = iter([503, 503, 200])
+
+    def service(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(next(answers), json=[{"id": "e1", "name": "cell"}])
+
+    client = Client("http://svc", "k", transport=httpx.MockTransport(service), backoff_s=0.5)
+    waits: list[float] = []
+    client.sleep = waits.append
+    assert client.environment("cell")["id"] == "e1"
+    assert waits == [0.5, 1.0]
+
+    def down(request: httpx.Request) -> httpx.Response:
+        raise httpx.ConnectError("refused", request=request)
+
+    client = Client("http://svc", "k", transport=httpx.MockTransport(down), retries=3)
+    client.sleep = waits.append
+    with pytest.raises(ApiError) as caught:
+        client.environments()
+    assert caught.value.status == 0 and caught.value.code == "ConnectError"
+
+    def refuse(request: httpx.Request) -> httpx.Response:
+        return httpx.Response(403, json={"error": "Forbidden", "detail": "needs read"})
+
+    client = Client("http://svc", "k", transport=httpx.MockTransport(refuse))
+    with pytest.raises(ApiError, match="403 Forbidden: needs read"):
+        client.environments()  # a 4xx is not retried
+
+
+class FakeTus:
+    """An in-memory tus server whose first PATCH takes half its bytes, then drops."""
+
+    def __init__(self) -> None:
+        self.received = bytearray()
+        self.patches = 0
+        self.length = 0
+
+    def __call__(self, request: httpx.Request) -> httpx.Response:
+        if request.method == "POST":
+            self.length = int(request.headers["Upload-Length"])
+            return httpx.Response(201, headers={"Location": "/v1/uploads/u1"})
+        if request.method == "HEAD":
+            return httpx.Response(200, headers={"Upload-Offset": str(len(self.received))})
+        assert int(request.headers["Upload-Offset"]) == len(self.received)
+        self.patches += 1
+        body = b"".join(request.stream)  # type: ignore[union-attr]
+        if self.patches == 1:
+            self.received += body[: len(body) // 2]
+            raise httpx.ReadError("connection reset", request=request)
+        self.received += body
+        headers = {"Upload-Offset": str(len(self.received))}
+        if len(self.received) == self.length:
+            headers |= {"Twindelta-Snapshot": "s1", "Twindelta-Job": "j1"}
+        return httpx.Response(204, headers=headers)
+
+
+def test_upload_resumes_from_the_offset_after_a_dropped_connection(tmp_path: Path) -> None:
+    archive = tmp_path / "capture.tar"
+    archive.write_bytes(bytes(range(256)) * 400)
+    server = FakeTus()
+    client = Client("http://svc", "k", transport=httpx.MockTransport(server))
+    client.sleep = lambda _s: None
+    seen: list[int] = []
+    result = client.upload("e1", archive, chunk_bytes=40_000, on_bytes=lambda o, _n: seen.append(o))
+    assert bytes(server.received) == archive.read_bytes()
+    assert (result.snapshot, result.job, result.resumes) == ("s1", "j1", 1)
+    # progress from 0 to the end, back to the resume point (half the first chunk) once
+    assert (seen[0], seen[-1]) == (0, archive.stat().st_size)
+    assert 20_000 in seen[seen.index(40_000) :]

@@ -24,6 +24,7 @@ from app.api.routes import (
     jobs,
     keys,
     objects,
+    scans,
     snapshots,
     uploads,
     webhooks,
@@ -126,7 +127,7 @@ def create_app() -> FastAPI:
     app.add_middleware(metrics_routes.MetricsMiddleware)
     app.include_router(health.router)
     app.include_router(metrics_routes.router)
-    routers = (keys, objects, environments, snapshots, uploads, jobs, comparisons, webhooks)
+    routers = (keys, objects, environments, snapshots, scans, uploads, jobs, comparisons, webhooks)
     for module in routers:
         app.include_router(module.router, prefix="/v1")
     return app

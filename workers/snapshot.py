@@ -13,8 +13,9 @@ from sqlalchemy.orm import Session
 
 from app.core import environments, events, ingest, snapshots, twin
 from app.core.db import transaction
-from app.core.enums import EventType, SnapshotState
+from app.core.enums import EventType, SnapshotSource, SnapshotState
 from app.core.models import utcnow
+from workers import scan_snapshot
 from workers.pipeline.reconstruct.cameras import load_cameras
 from workers.pipeline.reconstruct.options import options_from_preset
 from workers.pipeline.reconstruct.stage import ReconstructionResult, reconstruct
@@ -50,6 +51,7 @@ class SnapshotInputs:
     reference: dict[str, Any] | None
     options: dict[str, Any]
     previous_cloud_key: str | None
+    source: SnapshotSource = SnapshotSource.photos
 
 
 def run(job_id: str) -> str:
@@ -73,11 +75,14 @@ def _load(ctx: JobContext) -> SnapshotInputs:
             reference=env.reference,
             options=dict(env.options.get("reconstruct", {})),
             previous_cloud_key=previous.pointcloud_key if previous else None,
+            source=SnapshotSource(snap.source),
         )
 
 
 def _compute(ctx: JobContext) -> tuple[SnapshotInputs, ReconstructionResult]:
     inputs = _load(ctx)
+    if inputs.source == SnapshotSource.scan:  # a laser scan: read, not reconstructed
+        return inputs, scan_snapshot.compute(ctx, inputs.prefix, inputs.reference, inputs.options)
     progress = weighted(ctx.progress, STAGE_WEIGHTS)
     progress("ingest", 0.0)
     records = ingest.read_capture(ctx.storage, inputs.prefix, inputs.classes, ctx.settings)

@@ -9,10 +9,10 @@ the routes: for a ``/v1`` request that carries a body it
    the client is over its limit of unknown keys; any valid key passes here, the route's
    dependency still checks the scope and answers 403), and
 2. caps the body: a snapshot upload at ``max_upload_bytes``, an object model at
-   ``max_file_bytes`` (each plus the multipart framing), a resumable upload's PATCH at
-   ``max_upload_chunk_bytes``, everything else (JSON) at ``max_json_bytes``. A declared
-   ``Content-Length`` over the cap is a 413 before reading; a chunked body is counted as it
-   arrives and cut off with a 413 at the cap.
+   ``max_file_bytes``, a laser scan at ``max_scan_bytes`` (each plus the multipart
+   framing), a resumable upload's PATCH at ``max_upload_chunk_bytes``, everything else
+   (JSON) at ``max_json_bytes``. A declared ``Content-Length`` over the cap is a 413
+   before reading; a chunked body is counted as it arrives and cut off with a 413 at the cap.
 
 Both answers are ``{"error": code, "detail": text}`` like every other error.
 """
@@ -35,6 +35,7 @@ FRAMING_BYTES = 1024**2
 
 _SNAPSHOT_UPLOAD = re.compile(r"^/v1/environments/[^/]+/snapshots/?$")
 _OBJECT_UPLOAD = re.compile(r"^/v1/objects/?$")
+_SCAN_UPLOAD = re.compile(r"^/v1/environments/[^/]+/scans/?$")
 _UPLOAD_CHUNK = re.compile(r"^/v1/uploads/[^/]+/?$")
 
 
@@ -43,6 +44,11 @@ def body_limit(method: str, path: str, settings: Settings) -> tuple[int, str]:
     if method == "POST" and _SNAPSHOT_UPLOAD.match(path):
         cap = settings.max_upload_bytes + settings.max_upload_files * FRAMING_PER_FILE
         return cap + FRAMING_BYTES, f"max_upload_bytes ({settings.max_upload_bytes})"
+    if method == "POST" and _SCAN_UPLOAD.match(path):
+        return (
+            settings.max_scan_bytes + FRAMING_BYTES,
+            f"max_scan_bytes ({settings.max_scan_bytes})",
+        )
     if method == "POST" and _OBJECT_UPLOAD.match(path):
         return (
             settings.max_file_bytes + FRAMING_BYTES,

@@ -30,6 +30,13 @@ class JobKind(StrEnum):
     object = "object"
 
 
+class SnapshotSource(StrEnum):
+    """Where a snapshot's cloud comes from."""
+
+    photos = "photos"  # reconstructed from an uploaded capture
+    scan = "scan"  # read from an uploaded laser scan (E57, LAS, LAZ, PLY)
+
+
 class SnapshotState(StrEnum):
     uploaded = "uploaded"
     processing = "processing"

@@ -35,6 +35,7 @@ from app.core.enums import (
     JobKind,
     JobState,
     ObjectState,
+    SnapshotSource,
     SnapshotState,
     UploadState,
 )
@@ -152,6 +153,10 @@ class Snapshot(Base):
     )
     seq: Mapped[int] = mapped_column(Integer)
     state: Mapped[SnapshotState] = mapped_column(String(20), default=SnapshotState.uploaded)
+    # photos: reconstructed from a capture; scan: read from an uploaded laser scan
+    source: Mapped[SnapshotSource] = mapped_column(
+        String(10), default=SnapshotSource.photos, server_default=SnapshotSource.photos.value
+    )
     idempotency_key: Mapped[str | None] = mapped_column(String(200))
     request_digest: Mapped[str | None] = mapped_column(String(64))
     storage_prefix: Mapped[str] = mapped_column(String(500))

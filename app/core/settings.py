@@ -49,6 +49,8 @@ class Settings(BaseSettings):
     # a snapshot upload at ``max_upload_bytes`` and an object model at ``max_file_bytes``
     # (each plus the multipart framing).
     max_json_bytes: int = 2 * 1024**2
+    # A laser scan upload (POST /v1/environments/{id}/scans): the file, streamed to storage.
+    max_scan_bytes: int = 8 * 1024**3
     # Resumable (tus) uploads under /v1/uploads: one PATCH carries at most
     # ``max_upload_chunk_bytes`` (the whole upload at most ``max_upload_bytes``); an upload
     # not written to for ``upload_expiry_s`` expires and beat's ``maintenance.uploads``

@@ -7,7 +7,7 @@ from pydantic import BaseModel
 
 from app.api.schemas.common import Model
 from app.api.schemas.jobs import JobRead
-from app.core.enums import SnapshotState, TwinUpdate
+from app.core.enums import SnapshotSource, SnapshotState, TwinUpdate
 from app.core.models import Comparison, Job, Snapshot
 
 
@@ -16,6 +16,7 @@ class SnapshotRead(Model):
     environment: str
     seq: int
     state: SnapshotState
+    source: SnapshotSource = SnapshotSource.photos  # photos | scan: where its cloud comes from
     created_at: datetime
     reconstructed_at: datetime | None
     n_images: int
@@ -44,6 +45,7 @@ class SnapshotRead(Model):
             environment=snap.environment_id,
             seq=snap.seq,
             state=snap.state,
+            source=SnapshotSource(snap.source or SnapshotSource.photos),
             created_at=snap.created_at,
             reconstructed_at=snap.reconstructed_at,
             n_images=snap.n_images,

@@ -140,6 +140,7 @@ def list_comparisons(
 def get_state(
     environment_id: str,
     request: Request,
+    response: Response,
     session: SessionDep,
     storage: StorageDep,
     key: ReadKey,
@@ -167,12 +168,13 @@ def get_state(
         ]
     )
     state = twin_scene.view(session, env, snapshot)
+    response.headers["Vary"] = "Accept"
     if chosen == StateFormat.glb:
         name = f"{environment_id}-{state.seq}.glb"
         return Response(
             twin_scene.glb(session, storage, state),
             media_type=GLB_MEDIA_TYPE,
-            headers={"Content-Disposition": f'attachment; filename="{name}"'},
+            headers={"Content-Disposition": f'attachment; filename="{name}"', "Vary": "Accept"},
         )
     return TwinStateRead(
         environment=environment_id,

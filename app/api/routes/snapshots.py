@@ -190,10 +190,16 @@ def get_pointcloud(
         return StreamingResponse(
             storage.iter_bytes(laz_key),
             media_type=LAZ_MEDIA_TYPE,
-            headers={"Content-Disposition": f'attachment; filename="{snapshot_id}.laz"'},
+            headers={
+                "Content-Disposition": f'attachment; filename="{snapshot_id}.laz"',
+                "Vary": "Accept",
+            },
         )
     return StreamingResponse(
         storage.iter_bytes(snap.pointcloud_key),
         media_type=PLY_MEDIA_TYPE,
-        headers={"Content-Disposition": f'attachment; filename="{snapshot_id}.ply"'},
+        headers={
+            "Content-Disposition": f'attachment; filename="{snapshot_id}.ply"',
+            "Vary": "Accept",
+        },
     )

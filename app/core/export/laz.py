@@ -8,12 +8,14 @@ when the cloud has no colours; coordinates in metres in the environment frame wi
 of 0.1 mm and an offset at the cloud's lower corner rounded down to whole metres. 8-bit
 colours ``c`` become ``257·c`` (255 → 65535). Normals are not carried (LAS has no field for
 them). The file is written under a private name and renamed into place, so concurrent
-requests never see or leave half a file.
+requests never see or leave half a file; the first of several at once converts and the
+others wait for it.
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import uuid
 from pathlib import Path, PurePosixPath
@@ -46,12 +48,18 @@ def ensure_laz(
     the PLY cannot be read or converted; InsufficientStorage (507) when the disk is full."""
     key = laz_key(pointcloud_key)
     source, target = storage.path(pointcloud_key), storage.path(key)
-    if target.exists() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns:
+    if _fresh(source, target):
         return key
     part = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
     try:
-        write_laz(source, part, generator, chunk)
-        os.replace(part, target)
+        with source.open("rb") as lock:
+            # one conversion at a time per cloud (flock on the PLY: processes of this host);
+            # whoever waited finds the LAZ made. The rename alone keeps the file whole.
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if _fresh(source, target):
+                return key
+            write_laz(source, part, generator, chunk)
+            os.replace(part, target)
     except PlyError as exc:
         raise Conflict(str(exc), code="PointCloudUnreadable") from exc
     except OSError as exc:
@@ -63,6 +71,11 @@ def ensure_laz(
     finally:
         part.unlink(missing_ok=True)
     return key
+
+
+def _fresh(source: Path, target: Path) -> bool:
+    """Whether ``target`` exists and is at least as new as ``source``."""
+    return target.exists() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns
 
 
 def write_laz(ply: Path, out: Path, generator: str, chunk: int = CHUNK_POINTS) -> int:

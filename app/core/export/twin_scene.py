@@ -24,7 +24,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core import objects, twin
-from app.core.enums import TwinUpdate
+from app.core.enums import SnapshotState, TwinUpdate
 from app.core.errors import Conflict, NotFound
 from app.core.export.gltf import ModelGeometry, ModelGeometryError, SceneNode, write_glb
 from app.core.export.ply import PlyError, read_model
@@ -83,7 +83,7 @@ def view(session: Session, env: Environment, snapshot_id: str | None = None) -> 
         rows = [_current(i) for i in twin.current(session, env.id)]
         return TwinView(env.id, env.twin_snapshot_id, env.twin_seq or 0, False, rows)
     snap = session.get(Snapshot, snapshot_id)
-    if snap is None or snap.environment_id != env.id or snap.state == "deleted":
+    if snap is None or snap.environment_id != env.id or snap.state == SnapshotState.deleted:
         raise NotFound(f"snapshot {snapshot_id} not found in environment {env.id}")
     if snap.twin_update not in (TwinUpdate.baseline, TwinUpdate.applied):
         why = (

@@ -244,6 +244,7 @@ def test_negotiation_by_accept_and_format(
     by_format = get_glb(client, keys, url, tmp_path, params={"format": "glb"})
     by_accept = get_glb(client, keys, url, tmp_path, headers={"Accept": GLB})
     assert by_accept == by_format
+    assert client.get(url, headers=keys.headers("read")).headers["vary"] == "Accept"
     for accept in (
         None,
         "*/*",

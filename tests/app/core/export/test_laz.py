@@ -14,6 +14,7 @@ import open3d as o3d
 import pytest
 
 from app.core.errors import Conflict
+from app.core.export import laz
 from app.core.export.laz import SCALE_M, SYSTEM_IDENTIFIER, ensure_laz, laz_key, write_laz
 from app.core.export.ply import read_model
 from app.core.storage import LocalStorage
@@ -76,7 +77,16 @@ def test_the_laz_is_converted_once_and_again_only_when_the_ply_is_newer(
     assert laspy.read(storage.path(key)).header.point_count == 700
 
 
-def test_concurrent_conversions_leave_one_whole_file_and_no_parts(tmp_path: Path) -> None:
+def test_concurrent_conversions_convert_once_and_leave_one_whole_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[Path] = []
+
+    def counted(ply: Path, out: Path, generator: str, chunk: int) -> int:
+        calls.append(out)
+        return write_laz(ply, out, generator, chunk)
+
+    monkeypatch.setattr(laz, "write_laz", counted)
     storage = LocalStorage(tmp_path)
     ply_key = "snapshots/s/reconstruction/cloud.ply"
     write_cloud(storage.path(ply_key), 60_000)
@@ -95,7 +105,7 @@ def test_concurrent_conversions_leave_one_whole_file_and_no_parts(tmp_path: Path
         t.start()
     for t in threads:
         t.join()
-    assert errors == []
+    assert errors == [] and len(calls) == 1
     folder = storage.path(ply_key).parent
     assert sorted(p.name for p in folder.iterdir()) == ["cloud.laz", "cloud.ply"]
     assert laspy.read(folder / "cloud.laz").header.point_count == 60_000

@@ -2,7 +2,7 @@
 beside it (``.../reconstruction/cloud.laz``, under the snapshot's storage prefix, so it goes
 when the snapshot's files go).
 
-The PLY's vertex records are read a chunk at a time (memory-mapped) and written with laspy's
+The PLY's vertex records are read a chunk at a time and written with laspy's
 chunked writer and the lazrs backend: LAS 1.2, point format 2 (x, y, z and 16-bit RGB) or 0
 when the cloud has no colours; coordinates in metres in the environment frame with a scale
 of 0.1 mm and an offset at the cloud's lower corner rounded down to whole metres. 8-bit
@@ -31,7 +31,7 @@ from app.core.storage import LocalStorage
 MEDIA_TYPE = "application/vnd.laszip"
 SCALE_M = 1e-4  # 0.1 mm
 SYSTEM_IDENTIFIER = "twindelta environment frame"  # the LAS header's 32-byte fields
-CHUNK_POINTS = 1 << 20
+CHUNK_POINTS = 1 << 18  # about 7 MB of PLY records a chunk
 _INT32_SPAN = 2**31 - 1
 
 

@@ -1,6 +1,6 @@
 """Read PLY files with NumPy: library models (vertices, optional normals and colours, optional
-faces) and the vertex records of a snapshot's cloud in chunks (binary files memory-mapped, so
-a cloud of any size is read a chunk at a time).
+faces) and the vertex records of a snapshot's cloud in chunks (so a cloud of any size is
+read with memory for one chunk).
 
 ASCII, binary little-endian and binary big-endian files are read. Every failure is a
 :class:`PlyError` naming the file and what is wrong; the element counts a header declares are
@@ -142,7 +142,7 @@ def _vertex_element(path: Path, header: PlyHeader) -> PlyElement:
 
 def iter_vertices(path: Path, chunk: int = 1 << 20) -> Iterator[NDArray[np.void]]:
     """The vertex records of ``path``, at most ``chunk`` at a time, as structured arrays
-    with the file's property names (binary files memory-mapped, never read whole).
+    with the file's property names (read a chunk at a time, never whole).
     PlyError when the file has no leading vertex element with x, y and z."""
     header = read_header(path)
     vertex = _vertex_element(path, header)
@@ -151,13 +151,15 @@ def iter_vertices(path: Path, chunk: int = 1 << 20) -> Iterator[NDArray[np.void]
             fh.seek(header.data_offset)
             yield from _ascii_vertices(path, fh, header, vertex, chunk)
         return
-    if vertex.count == 0:
-        return
-    records = np.memmap(
-        path, dtype=header.dtype(vertex), mode="r", offset=header.data_offset, shape=(vertex.count,)
-    )
-    for start in range(0, vertex.count, chunk):
-        yield np.array(records[start : start + chunk])
+    dtype = header.dtype(vertex)
+    with path.open("rb") as fh:
+        fh.seek(header.data_offset)
+        for start in range(0, vertex.count, chunk):
+            n = min(chunk, vertex.count - start)
+            records = np.fromfile(fh, dtype=dtype, count=n)
+            if len(records) != n:  # the header's count was checked against the size
+                raise PlyError(f"{path.name}: the file ends inside its vertices")
+            yield records
 
 
 def _ascii_vertices(

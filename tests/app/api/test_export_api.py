@@ -377,3 +377,17 @@ def test_laz_of_a_snapshot_without_a_cloud_is_409(
         headers=keys.headers("read"),
     )
     assert r.status_code == 409 and r.json()["error"] == "PointCloudNotReady"
+
+
+def test_a_model_file_that_cannot_be_read_leaves_its_nodes_without_a_mesh(
+    client: TestClient, keys: Keys, world: World, tmp_path: Path
+) -> None:
+    storage = LocalStorage(get_settings().resolved_storage_dir)
+    key = f"objects/{world.objects['drill']}/model.ply"
+    storage.write_bytes(key, b"ply\nformat binary_little_endian 1.0\nelement vertex 9\n")
+    url = f"/v1/environments/{world.env_id}/state"
+    by_name = nodes(get_glb(client, keys, url, tmp_path, params={"format": "glb"}))
+    for short in ("a", "b"):
+        drill = by_name[f"drill/{world.instances[short]}"]
+        assert "mesh" not in drill and "could not be read" in drill["extras"]["model_missing"]
+    assert "mesh" in by_name[f"bowl/{world.instances['bowl']}"]  # the others are drawn

@@ -83,7 +83,11 @@ def _poll(d: dict[str, Any]) -> dict[str, Any]:
 
 def _upload(d: dict[str, Any]) -> dict[str, Any]:
     keys = ("archive_mb", "seconds", "mb_per_s", "peak_rss_mb", "target_peak_rss_mb")
-    return {k: d.get(k) for k in (*keys, "within_target")}
+    return {
+        **{k: d.get(k) for k in (*keys, "within_target")},
+        "resumable": {k: _get(d, "resumable", k) for k in ("seconds", "mb_per_s", "peak_rss_mb")},
+        "resumable_to_single_throughput": d.get("resumable_to_single_throughput"),
+    }
 
 
 def _reconstruct(d: dict[str, Any]) -> dict[str, Any]:

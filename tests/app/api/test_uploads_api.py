@@ -401,3 +401,55 @@ def test_a_patch_moves_the_expiry(
         assert row is not None
         assert row.expires_at > utcnow() + timedelta(seconds=get_settings().upload_expiry_s - 60)
     assert r.headers["Upload-Expires"].endswith("GMT")
+
+
+def test_beat_runs_the_expiry_task_and_it_deletes_expired_uploads(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session], data_dir: Path
+) -> None:
+    from app.core import queue
+    from workers.maintenance_tasks import expire_uploads
+
+    settings = get_settings()
+    entry = next(
+        e
+        for e in queue.celery_config(settings)["beat_schedule"].values()
+        if e["task"] == "maintenance.uploads"
+    )
+    assert entry["schedule"] == settings.upload_sweep_interval_s
+    assert queue.TASK_QUEUES["maintenance.uploads"] == queue.TASK_QUEUES["maintenance.sweep"]
+    env_id = make_env(client, keys)
+    url = create(client, keys, env_id, b"x" * 10).headers["Location"]
+    assert patch(client, keys, url, 0, b"x" * 3).status_code == 204
+    upload_id = url.rsplit("/", 1)[1]
+    with session_factory.begin() as s:
+        row = s.get(ResumableUpload, upload_id)
+        assert row is not None
+        row.expires_at = utcnow() - timedelta(seconds=1)
+    assert expire_uploads() == {"uploads_expired": 1, "uploads_orphaned": 0}
+    assert not (data_dir / "files" / "uploads" / upload_id).exists()
+    with session_factory() as s:
+        assert s.get(ResumableUpload, upload_id) is None
+
+
+def test_an_unexpected_error_at_the_end_keeps_the_bytes_for_a_retry(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from app.core import ingest
+
+    env_id = make_env(client, keys)
+    body = archive()
+    url = create(client, keys, env_id, body).headers["Location"]
+    real = ingest.create_snapshot
+
+    def broken(*args: object, **kwargs: object) -> object:
+        raise RuntimeError("the database went away")
+
+    monkeypatch.setattr(ingest, "create_snapshot", broken)
+    with pytest.raises(RuntimeError):
+        patch(client, keys, url, 0, body)
+    info = client.get(url, headers=keys.headers("capture")).json()
+    assert (info["state"], info["offset"]) == ("receiving", len(body))
+    monkeypatch.setattr(ingest, "create_snapshot", real)
+    r = patch(client, keys, url, len(body), b"")  # the last PATCH again, with no bytes
+    assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers
+    assert sent_tasks.names() == ["snapshot.process"]

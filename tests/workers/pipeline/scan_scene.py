@@ -31,7 +31,7 @@ class SyntheticScan:
 
 
 def _floor_patch(
-    sheet: MarkerSheet, spacing_m: float, rng: np.random.Generator
+    sheet: MarkerSheet, spacing_m: float, rng: np.random.Generator, printed: bool
 ) -> tuple[NDArray[np.float64], NDArray[np.float32]]:
     """Floor points z = 0 on a jittered grid around the markers, with their colours."""
     reach = max(np.linalg.norm(p[:2, 3]) for p in sheet.env_from_marker.values())
@@ -43,8 +43,9 @@ def _floor_patch(
     pts[:, 2] += rng.normal(0.0, 0.0003, len(pts))  # 0.3 mm range noise
     floor = next(s for s in room_surfaces(RoomOptions()) if s.name == "floor")
     colors = floor.texture.colours(pts.astype(np.float32))
-    grey, on_paper = sheet.albedo(pts.astype(np.float32))
-    colors[on_paper] = grey[on_paper, None]
+    if printed:
+        grey, on_paper = sheet.albedo(pts.astype(np.float32))
+        colors[on_paper] = grey[on_paper, None]
     return pts, colors
 
 
@@ -68,11 +69,14 @@ def _sample_mesh(
     return (1 - s)[:, None] * a[tri] + (s * (1 - r2))[:, None] * b[tri] + (s * r2)[:, None] * c[tri]
 
 
-def synthetic_scan(seed: int = 0, floor_spacing_m: float = 0.002) -> SyntheticScan:
+def synthetic_scan(
+    seed: int = 0, floor_spacing_m: float = 0.002, printed: bool = True
+) -> SyntheticScan:
+    """The scan (``printed`` False: the floor without the sheet's print)."""
     rng = np.random.default_rng(seed)
     room = RoomOptions()
     sheet = marker_sheet(room)
-    floor_pts, floor_cols = _floor_patch(sheet, floor_spacing_m, rng)
+    floor_pts, floor_cols = _floor_patch(sheet, floor_spacing_m, rng, printed)
     parts, cols = [floor_pts], [floor_cols]
     for surface in room_surfaces(room):
         if surface.name == "floor":

@@ -103,6 +103,8 @@ def _planes(points: FloatArray, options: ScanOptions) -> list[_Plane]:
         _, _, vt = np.linalg.svd(points[near] - centre, full_matrices=False)
         normal = vt[2]
         near = near[np.abs((points[near] - centre) @ normal) < options.plane_distance_m / 2]
+        if len(near) < options.plane_min_points:
+            continue
         u = vt[0] / np.linalg.norm(vt[0])
         v = np.cross(normal, u)
         out.append(_Plane(centre, u, v, near))
@@ -135,6 +137,13 @@ def _raster(
     return np.clip(np.rint(img), 0, 255).astype(np.uint8), origin
 
 
+def _spacing_m(u: FloatArray, v: FloatArray, cell_m: float = 0.02) -> float:
+    """Mean spacing of points at plane coordinates (u, v) metres: √(covered area / count),
+    the area being the occupied ``cell_m`` cells."""
+    cells = np.unique(np.floor(np.column_stack([u, v]) / cell_m).astype(np.int64), axis=0)
+    return float(np.sqrt(len(cells) * cell_m**2 / max(len(u), 1)))
+
+
 def _detect_tiled(
     img: NDArray[np.uint8], dictionary: str, tile: int, overlap: int
 ) -> dict[int, FloatArray]:
@@ -161,6 +170,8 @@ def _corners_on_plane(
     other face is tried when the first shows none."""
     best: dict[int, FloatArray] = {}
     local = points[plane.index] - plane.origin
+    if _spacing_m(local @ plane.u, local @ plane.v) > options.max_point_spacing_m:
+        return best  # too sparse to show a marker's cells
     overlap = int(np.ceil(2.0 * reference.size_m / options.raster_m))
     for side in (1.0, -1.0):
         v = side * plane.v  # flipping v flips the normal: the other face

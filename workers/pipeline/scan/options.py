@@ -25,6 +25,7 @@ class ScanOptions:
     plane_iterations: int = 1000  # RANSAC iterations per plane
     max_planes: int = 10  # largest planes searched for markers, in order of size
     plane_min_points: int = 200  # a plane needs this many thinned points to be searched
+    max_point_spacing_m: float = 0.008  # sparser planes are skipped (a marker cell: s/6)
     raster_m: float = 0.0015  # raster pixel (1.5 mm) the coloured plane points are drawn on
     raster_tile_px: int = 4000  # rasters are detected in tiles of at most this side
     max_marker_residual_m: float = 0.01  # a marker whose corners fit worse is dropped

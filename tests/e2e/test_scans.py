@@ -21,7 +21,7 @@ from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, po
 from tests.e2e.test_twin_order import PLUGIN, upload, worker_ready
 from tests.workers.pipeline.scan_scene import cloud, write_las
 
-pytestmark = [pytest.mark.slow, pytest.mark.e2e]
+pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
 CLASSES = ["drill", "bowl", "mug"]
 SHEET = {"markers": {"size": 0.15, "poses": {"0": np.eye(4).tolist()}}}

@@ -12,6 +12,7 @@ import sys
 STAGES: dict[str, str] = {
     "synth": "workers.pipeline.synth.cli",
     "reconstruct": "workers.pipeline.reconstruct.cli",
+    "scan": "workers.pipeline.scan.cli",
     "compare": "workers.pipeline.compare.cli",
     "pose": "workers.pipeline.pose.cli",
     "model": "workers.pipeline.model.cli",

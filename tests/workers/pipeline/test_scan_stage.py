@@ -5,6 +5,7 @@ NoUsableFrame; the cloud has the photo pipeline's density; an all-invalid scan i
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -132,3 +133,20 @@ def test_a_scan_without_a_finite_point_is_empty(tmp_path: Path) -> None:
     path.write_bytes(header + np.full((20, 3), np.nan, "<f4").tobytes())
     with pytest.raises(EmptyScan, match="no valid points"):
         scan_to_cloud(ScanInput(path, "ply", frame(np.eye(4)), 20), tmp_path / "out", VOXEL_M)
+
+
+def test_the_command_line_runs_the_stage(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from workers.pipeline.__main__ import main
+
+    points, colors = cloud(300)
+    write_ply(tmp_path / "scan.ply", points, colors)
+    (tmp_path / "scan.ply").rename(tmp_path / "scan.bin")  # recognised by content, not name
+    transform = json.dumps({"transform": np.eye(4).tolist(), "units": "cm"})
+    args = ["scan", str(tmp_path / "scan.bin"), "--out", str(tmp_path / "out"), "--quiet"]
+    assert main([*args, "--frame", transform]) == 0
+    quality = json.loads(capsys.readouterr().out)
+    assert quality["points_in"] == 300 and (tmp_path / "out" / "cloud.ply").is_file()
+    assert main([*args, "--frame", '{"markers": true}']) == 1  # no reference: no sheet
+    assert json.loads(capsys.readouterr().out)["error"] == "NoUsableFrame"

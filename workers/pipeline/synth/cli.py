@@ -1,5 +1,7 @@
 """``python -m workers.pipeline synth --scenario moved --out DIR [--seed 0] [--preset demo]
-[--ycb DIR --objects power_drill,mustard_bottle,...] [--views N] [--poses | --no-poses]``."""
+[--ycb DIR --objects power_drill,mustard_bottle,...] [--views N] [--poses | --no-poses]
+[--room closed|one_wall|...] [--path ring|low_high|wide_high] [--real-camera]
+[--distractors column,unknown_box] [--target NAME]``."""
 
 from __future__ import annotations
 
@@ -10,7 +12,16 @@ from pathlib import Path
 
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.synth.generate import generate
-from workers.pipeline.synth.options import PRESETS, SCENARIOS, preset
+from workers.pipeline.synth.options import (
+    DISTRACTORS,
+    PATH_PRESETS,
+    PRESETS,
+    REAL_CAMERA,
+    ROOM_PRESETS,
+    SCENARIOS,
+    SynthOptions,
+    preset,
+)
 from workers.pipeline.synth.shapes import ObjectModel, load_model
 
 
@@ -22,6 +33,21 @@ def _models(ycb: Path | None, objects: str | None) -> list[ObjectModel] | None:
     if ycb is None:
         return [load_model(Path(n)) for n in names]
     return [load_model(ycb / n / "textured.obj", n) for n in names]
+
+
+def _world(options: SynthOptions, args: argparse.Namespace) -> SynthOptions:
+    """``options`` with the room, path, effects, distractors and target of the arguments."""
+    if args.room is not None:
+        options = replace(options, room=ROOM_PRESETS[args.room])
+    if args.path is not None:
+        path = replace(PATH_PRESETS[args.path], n_views=options.path.n_views)
+        options = replace(options, path=path)
+    if args.real_camera:
+        options = replace(options, effects=REAL_CAMERA)
+    if args.distractors:
+        names = tuple(n.strip() for n in args.distractors.split(",") if n.strip())
+        options = replace(options, distractors=names)
+    return replace(options, target=args.target)
 
 
 def cli(argv: list[str]) -> int:
@@ -45,8 +71,15 @@ def cli(argv: list[str]) -> int:
         help="write the true camera poses into cameras.json",
     )
     poses.add_argument("--no-poses", dest="poses", action="store_false")
+    parser.add_argument("--room", choices=sorted(ROOM_PRESETS), help="room layout preset")
+    parser.add_argument("--path", choices=sorted(PATH_PRESETS), help="camera path preset")
+    parser.add_argument(
+        "--real-camera", action="store_true", help="lens distortion, exposure, blur"
+    )
+    parser.add_argument("--distractors", help=f"comma-separated, of {', '.join(DISTRACTORS)}")
+    parser.add_argument("--target", help="the object the change acts on")
     args = parser.parse_args(argv)
-    options = preset(args.preset)
+    options = _world(preset(args.preset), args)
     if args.views is not None:
         options = replace(options, path=replace(options.path, n_views=args.views))
     if args.poses is not None:

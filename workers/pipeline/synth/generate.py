@@ -14,6 +14,14 @@ reference.json), ``before`` / ``after`` ([{"instance_id", "object", "class_id",
 "previous_pose", "replaced_object", "replaced_instance_id"}], docs/contract.md field meanings)
 and ``camera_poses`` ({capture: {image name: env_from_cam}}). Poses are 4×4 row-major
 lists, metres; cameras have OpenCV axes and pixel centres at integer coordinates.
+
+A scene that uses any option beyond the original generator's (a room layout, texture
+variant or shelf, camera rings, camera effects, distractors, a target) also gets
+``supports`` ([{"name", "centre_m", "size_m", "z_m"}], every surface objects stand on),
+``camera`` (the true intrinsics, cameras.json's form, lens included), ``effects``
+(EffectsOptions) and ``distractors`` ({name: {"model": "distractors/<name>.ply"}}); a
+distractor's placement has ``class_id`` None and ``distractor`` true, its change ``object``
+None and ``unidentified`` true. Scenes without them are written byte for byte as before.
 """
 
 from __future__ import annotations
@@ -33,10 +41,20 @@ from app.formats.cameras import CamerasFile, Pose, pose_rows, write_cameras
 from app.formats.yolo import YoloBox, yolo_line
 from workers.pipeline.errors import InputError, ShapeError
 from workers.pipeline.geometry import Mat4, as_mat4
-from workers.pipeline.synth.cameras import camera_path, cameras_json_intrinsics, intrinsics_matrix
-from workers.pipeline.synth.options import PRESETS, DetectionOptions, RoomOptions, SynthOptions
-from workers.pipeline.synth.render import RenderedView, Renderer
-from workers.pipeline.synth.scene import Scenario, build_scenario, room_surfaces
+from workers.pipeline.synth.cameras import (
+    camera_path,
+    cameras_json_intrinsics,
+    distortion_coeffs,
+    intrinsics_matrix,
+)
+from workers.pipeline.synth.options import (
+    PRESETS,
+    DetectionOptions,
+    RoomOptions,
+    SynthOptions,
+)
+from workers.pipeline.synth.render import RenderedView, Renderer, ViewEffects, motion_blur_kernel
+from workers.pipeline.synth.scene import Placement, Scenario, build_scenario, room_surfaces
 from workers.pipeline.synth.shapes import Mesh, ObjectModel, builtin_models, write_model_ply
 
 CAPTURES: tuple[str, str] = ("before", "after")
@@ -83,10 +101,13 @@ def detect(
     rng: np.random.Generator,
 ) -> list[Detection]:
     """Detections of one view from its instance buffer; ``class_ids[i]`` is the class of
-    placement i. Applies box jitter (pixels), missed detections and false positives."""
+    placement i (−1: not a library object, never detected). Applies box jitter (pixels),
+    missed detections and false positives."""
     h, w = instance.shape
     out = []
     for idx, (x0, y0, x1, y1, n) in visible_boxes(instance, options.min_visible_px).items():
+        if class_ids[idx] < 0:
+            continue
         if options.miss_rate > 0 and rng.uniform() < options.miss_rate:
             continue
         edges = np.asarray([x0, y0, x1, y1], np.float64)
@@ -144,6 +165,24 @@ def capture_path(scenario: Scenario, capture: str, options: SynthOptions) -> lis
     return camera_path(options.path, rng)
 
 
+def view_effects(options: SynthOptions, seed: int, capture: str, index: int) -> ViewEffects | None:
+    """The camera effects of view ``index`` of ``capture`` (None when no effect is on):
+    the capture's gain × white balance × exp(N(0, exposure_jitter)), and a motion blur of
+    U(0, motion_blur_px) pixels in a uniform direction, drawn from (seed, 5, capture, view)."""
+    fx = options.effects
+    if not fx.active:
+        return None
+    c = CAPTURES.index(capture)
+    rng = np.random.default_rng([seed, 5, c, index])
+    gain = fx.capture_gain[c] * np.asarray(fx.capture_white_balance[c], np.float64)
+    gain = gain * float(np.exp(fx.exposure_jitter * rng.standard_normal()))
+    kernel = None
+    if fx.motion_blur_px > 0:
+        length, angle = rng.uniform(0.0, fx.motion_blur_px), rng.uniform(0.0, np.pi)
+        kernel = motion_blur_kernel(float(length), float(angle))
+    return ViewEffects(gain.astype(np.float32), kernel)
+
+
 def render_capture(
     scenario: Scenario, capture: str, options: SynthOptions
 ) -> Iterator[tuple[str, RenderedView]]:
@@ -152,12 +191,19 @@ def render_capture(
     c = CAPTURES.index(capture)
     k = intrinsics_matrix(options.camera)
     renderer = Renderer(
-        scenario.room, placements, scenario.markers, options.camera, options.look, k
+        scenario.room,
+        placements,
+        scenario.markers,
+        options.camera,
+        options.look,
+        k,
+        distortion_coeffs(options.effects),
     )
     path = camera_path(options.path, np.random.default_rng([scenario.seed, 2, c]))
     for index, env_from_cam in enumerate(path):
         rng = np.random.default_rng([scenario.seed, 3, c, index])
-        yield view_name(index, options), renderer.render(env_from_cam, rng)
+        effects = view_effects(options, scenario.seed, capture, index)
+        yield view_name(index, options), renderer.render(env_from_cam, rng, effects)
 
 
 def _encode(image_rgb: NDArray[np.uint8], quality: int | None) -> bytes:
@@ -184,7 +230,10 @@ def write_capture(
     (root / "labels").mkdir(parents=True, exist_ok=True)
     classes = [m.name for m in scenario.models]
     (root / "classes.txt").write_text("".join(name + "\n" for name in classes))
-    class_ids = [classes.index(p.model.name) for p in scenario.capture(capture)]
+    class_ids = [
+        classes.index(p.model.name) if p.model.name in classes else -1
+        for p in scenario.capture(capture)
+    ]
     c = CAPTURES.index(capture)
     poses: dict[str, Pose] = {}
     for index, (name, view) in enumerate(render_capture(scenario, capture, options)):
@@ -198,13 +247,32 @@ def write_capture(
         poses[name] = pose_rows(view.env_from_cam.tolist())
         if progress is not None:
             progress(f"render_{capture}", (index + 1) / options.path.n_views)
-    cameras = CamerasFile(
-        intrinsics=cameras_json_intrinsics(options.camera),
-        poses=poses if options.write_poses else {},
-    )
-    write_cameras(root / "cameras.json", cameras)
+    _write_cameras(root / "cameras.json", options, poses)
     _remove_stale(root / "images", set(poses))
     _remove_stale(root / "labels", {Path(name).stem + ".txt" for name in poses})
+
+
+def _write_cameras(path: Path, options: SynthOptions, poses: dict[str, Pose]) -> None:
+    """cameras.json: the declared intrinsics (lens included) and, with ``write_poses``, the
+    true poses. Without declared intrinsics and poses no file is written (an old one is
+    removed); InputError for poses without intrinsics, which cameras.json cannot hold."""
+    if not options.effects.declare_intrinsics:
+        _check_cameras_options(options)
+        path.unlink(missing_ok=True)
+        return
+    cameras = CamerasFile(
+        intrinsics=cameras_json_intrinsics(options.camera, options.effects),
+        poses=poses if options.write_poses else {},
+    )
+    write_cameras(path, cameras)
+
+
+def _check_cameras_options(options: SynthOptions) -> None:
+    """InputError when cameras.json cannot be written as asked: poses without declared
+    intrinsics, or an unknown lens model."""
+    distortion_coeffs(options.effects)
+    if options.write_poses and not options.effects.declare_intrinsics:
+        raise InputError("write_poses needs declared intrinsics (effects.declare_intrinsics)")
 
 
 def _remove_stale(folder: Path, keep: set[str]) -> None:
@@ -223,19 +291,22 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
     """
     classes = [m.name for m in scenario.models]
 
-    def capture(name: str) -> list[dict[str, Any]]:
-        return [
-            {
-                "instance_id": p.instance_id,
-                "object": p.model.name,
-                "class_id": classes.index(p.model.name),
-                "env_from_object": p.env_from_object.tolist(),
-                "support": p.support,
-            }
-            for p in scenario.capture(name)
-        ]
+    def item(p: Placement) -> dict[str, Any]:
+        out: dict[str, Any] = {
+            "instance_id": p.instance_id,
+            "object": p.model.name,
+            "class_id": classes.index(p.model.name) if p.model.name in classes else None,
+            "env_from_object": p.env_from_object.tolist(),
+            "support": p.support,
+        }
+        if p.model.name not in classes:
+            out["distractor"] = True
+        return out
 
-    return {
+    def capture(name: str) -> list[dict[str, Any]]:
+        return [item(p) for p in scenario.capture(name)]
+
+    doc = {
         "format": "twindelta-synth/1",
         "scenario": scenario.name,
         "seed": scenario.seed,
@@ -244,7 +315,7 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
             m.name: {"model": f"objects/{m.name}.ply", "symmetry": m.symmetry}
             for m in scenario.models
         },
-        "room": asdict(options.room),
+        "room": _room_json(options.room),
         "reference": scenario.markers.reference(),
         "before": capture("before"),
         "after": capture("after"),
@@ -257,6 +328,40 @@ def ground_truth(scenario: Scenario, options: SynthOptions) -> dict[str, Any]:
             for name in CAPTURES
         },
     }
+    if _extended(options):
+        doc["supports"] = [s.to_json() for s in scenario.supports]
+        doc["camera"] = cameras_json_intrinsics(options.camera, options.effects).to_json()
+        doc["effects"] = asdict(options.effects)
+        doc["distractors"] = {
+            m.name: {"model": f"distractors/{m.name}.ply"} for m in scenario.distractors
+        }
+    return doc
+
+
+#: RoomOptions fields added after the first generator: written only when not at default.
+_NEW_ROOM_FIELDS = ("layout", "texture_variant", "shelf", "shelf_size_m", "shelf_centre_m")
+
+
+def _room_json(room: RoomOptions) -> dict[str, Any]:
+    """``room`` as written in ground_truth.json (new fields only where not at default)."""
+    default = RoomOptions()
+    return {
+        k: v
+        for k, v in asdict(room).items()
+        if k not in _NEW_ROOM_FIELDS or v != getattr(default, k)
+    }
+
+
+def _extended(options: SynthOptions) -> bool:
+    """Whether the scene uses an option beyond the original generator's."""
+    room = options.room
+    return bool(
+        options.effects.active
+        or options.distractors
+        or options.target is not None
+        or options.path.rings_m
+        or any(getattr(room, k) != getattr(RoomOptions(), k) for k in _NEW_ROOM_FIELDS)
+    )
 
 
 def generate(
@@ -271,10 +376,13 @@ def generate(
 
     ``models`` defaults to the built-in shapes. Same arguments ⇒ byte-identical files.
     """
+    _check_cameras_options(options)
     built = build_scenario(scenario, models or builtin_models(), seed, options)
     out_dir.mkdir(parents=True, exist_ok=True)
     for model in built.models:
         write_model_ply(model, out_dir / "objects" / f"{model.name}.ply")
+    for model in built.distractors:
+        write_model_ply(model, out_dir / "distractors" / f"{model.name}.ply")
     (out_dir / "reference.json").write_text(json.dumps(built.markers.reference(), indent=1))
     (out_dir / "ground_truth.json").write_text(json.dumps(ground_truth(built, options), indent=1))
     for capture in CAPTURES:
@@ -311,8 +419,9 @@ def load_true_surfaces(scenario_dir: Path, capture: str) -> dict[str, o3d.geomet
     }
     room = RoomOptions(**fields)
     out = {s.name: _legacy(s.mesh, np.eye(4)) for s in room_surfaces(room)}
+    files = {**gt.get("distractors", {}), **gt["objects"]}
     for item in gt[capture]:
-        model = o3d.io.read_triangle_mesh(scenario_dir / gt["objects"][item["object"]]["model"])
+        model = o3d.io.read_triangle_mesh(scenario_dir / files[item["object"]]["model"])
         mesh = Mesh(np.asarray(model.vertices), np.asarray(model.triangles, np.int32))
         out[item["instance_id"]] = _legacy(
             mesh, as_mat4(item["env_from_object"], "env_from_object")

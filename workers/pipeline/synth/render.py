@@ -2,12 +2,16 @@
 
 Per pixel: the first hit's surface colour (solid texture, UV texture or marker print),
 Lambertian shading from one directional light plus ambient, and the visible instance.
+With a lens distortion each pixel's ray is the undistorted direction of that pixel, so the
+image is the distorted one a real lens gives; per-view gains and motion blur apply to the
+linear image before the sensor noise.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
@@ -47,18 +51,82 @@ class _Geometry:
     object_from_env: Mat4
 
 
-def _pixel_rays(k: NDArray[np.float64], width: int, height: int) -> F32:
+@dataclass(frozen=True, eq=False)
+class ViewEffects:
+    """Camera effects of one view: ``gain_rgb`` (3,) multiplies the linear image (exposure
+    × white balance); ``blur_kernel`` (n, n) float32 summing to 1, or None."""
+
+    gain_rgb: NDArray[np.float32]
+    blur_kernel: NDArray[np.float32] | None = None
+
+
+def motion_blur_kernel(length_px: float, angle_rad: float) -> NDArray[np.float32]:
+    """(n, n) kernel of a straight motion of ``length_px`` pixels at ``angle_rad``: 64
+    points along the segment splatted bilinearly, normalised to sum 1."""
+    half = int(np.ceil(length_px / 2.0)) + 1
+    n = 2 * half + 1
+    kernel = np.zeros((n, n), np.float64)
+    s = np.linspace(-length_px / 2.0, length_px / 2.0, 64)
+    xs, ys = half + s * np.cos(angle_rad), half + s * np.sin(angle_rad)
+    x0, y0 = np.floor(xs).astype(int), np.floor(ys).astype(int)
+    fx, fy = xs - x0, ys - y0
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy)):
+        np.add.at(kernel, (y0 + dy, x0 + dx), w)
+    np.add.at(kernel, (y0 + 1, x0 + 1), fx * fy)
+    out: NDArray[np.float32] = (kernel / kernel.sum()).astype(np.float32)
+    return out
+
+
+def _pixel_rays(
+    k: NDArray[np.float64],
+    width: int,
+    height: int,
+    distortion: tuple[float, ...] | None = None,
+) -> F32:
     """(H, W, 3) camera-frame ray directions (z = 1) through the pixel centres, which sit at
-    integer coordinates (OpenCV convention)."""
+    integer coordinates (OpenCV convention). With ``distortion`` (OpenCV's k1, k2, p1, p2,
+    k3) each pixel is undistorted first (iterated to 1e-12), so a point seen along the ray
+    of pixel (u, v) projects through K and the distortion to (u, v)."""
     u = np.arange(width, dtype=np.float64)
     v = np.arange(height, dtype=np.float64)
-    x = (u - k[0, 2]) / k[0, 0]
-    y = (v - k[1, 2]) / k[1, 1]
     out = np.empty((height, width, 3), np.float32)
-    out[..., 0] = x[None, :]
-    out[..., 1] = y[:, None]
     out[..., 2] = 1.0
+    if distortion is None:
+        out[..., 0] = ((u - k[0, 2]) / k[0, 0])[None, :]
+        out[..., 1] = ((v - k[1, 2]) / k[1, 1])[:, None]
+        return out
+    xd = ((u - k[0, 2]) / k[0, 0])[None, :].repeat(height, 0)
+    yd = ((v - k[1, 2]) / k[1, 1])[:, None].repeat(width, 1)
+    x, y = _undistort_normalised(xd, yd, distortion)
+    out[..., 0], out[..., 1] = x, y
     return out
+
+
+def distort_normalised(
+    x: NDArray[np.float64], y: NDArray[np.float64], distortion: tuple[float, ...]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """OpenCV's lens model on normalised coordinates: (k1, k2, p1, p2, k3) applied to (x, y)."""
+    k1, k2, p1, p2, k3 = distortion
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
+
+
+def _undistort_normalised(
+    xd: NDArray[np.float64], yd: NDArray[np.float64], distortion: tuple[float, ...]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Invert :func:`distort_normalised` by fixed-point iteration; ShapeError when it does
+    not converge to 1e-9 (a lens too strong for this image)."""
+    x, y = xd.copy(), yd.copy()
+    for _ in range(200):
+        ex, ey = distort_normalised(x, y, distortion)
+        x, y = x - (ex - xd), y - (ey - yd)
+    ex, ey = distort_normalised(x, y, distortion)
+    if not np.all(np.abs(ex - xd) + np.abs(ey - yd) < 1e-9):
+        raise ShapeError(f"lens distortion {distortion} cannot be inverted over the image")
+    return x, y
 
 
 class Renderer:
@@ -72,6 +140,7 @@ class Renderer:
         camera: CameraOptions,
         look: LookOptions,
         k: NDArray[np.float64],
+        distortion: tuple[float, ...] | None = None,
     ) -> None:
         self.camera, self.look, self.markers, self.k = camera, look, markers, k
         self.placements = placements
@@ -81,7 +150,7 @@ class Renderer:
             self._add(surface.mesh, np.eye(4), surface, None)
         for placement in placements:
             self._add(placement.model.mesh, placement.env_from_object, None, placement)
-        self._rays_cam = _pixel_rays(k, camera.width, camera.height)
+        self._rays_cam = _pixel_rays(k, camera.width, camera.height, distortion)
         light = np.asarray(look.light_dir, np.float32)
         self._light = light / np.linalg.norm(light)
         self._focal = np.float32(k[0, 0])
@@ -108,8 +177,11 @@ class Renderer:
             )
         )
 
-    def render(self, env_from_cam: Mat4, rng: np.random.Generator) -> RenderedView:
-        """Render the view of a camera at ``env_from_cam`` (4×4, OpenCV axes)."""
+    def render(
+        self, env_from_cam: Mat4, rng: np.random.Generator, effects: ViewEffects | None = None
+    ) -> RenderedView:
+        """Render the view of a camera at ``env_from_cam`` (4×4, OpenCV axes) with the
+        camera ``effects`` of this view (none when None)."""
         env_from_cam = as_mat4(env_from_cam, "env_from_cam")
         h, w = self.camera.height, self.camera.width
         rot = env_from_cam[:3, :3].astype(np.float32)
@@ -165,6 +237,8 @@ class Renderer:
                 if geom.static.name == "floor":
                     self._print_markers(sel, points, albedo, env_from_cam)
         rgb = albedo * (shade * np.float32(255.0))[:, None]
+        if effects is not None:
+            rgb = _apply_effects(rgb, effects, h, w)
         if self.look.noise_sigma > 0:
             rgb += rng.standard_normal(rgb.shape, np.float32) * np.float32(self.look.noise_sigma)
         image: NDArray[np.uint8] = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
@@ -213,3 +287,13 @@ class Renderer:
                 sub_grey, sub_on = self.markers.albedo(sub)
                 acc += np.where(sub_on[:, None], sub_grey[:, None], albedo[pix])
         albedo[pix] = acc / np.float32(n * n)
+
+
+def _apply_effects(rgb: F32, effects: ViewEffects, h: int, w: int) -> F32:
+    """(H·W, 3) linear RGB times the view's gain, then blurred by its kernel."""
+    out: F32 = rgb * effects.gain_rgb.astype(np.float32)[None, :]
+    if effects.blur_kernel is None:
+        return out
+    image = cv2.filter2D(out.reshape(h, w, 3), -1, effects.blur_kernel)
+    result: F32 = np.asarray(image, np.float32).reshape(-1, 3)
+    return result

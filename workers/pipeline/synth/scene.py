@@ -1,9 +1,10 @@
 """Scene layout: the room, where objects stand, and the before/after scenarios.
 
 All poses are ``env_from_object`` (4×4 float64, metres), environment z up, floor at z = 0.
-Objects rest on a support (floor or table top) by their lowest vertex and only turn about z.
-A new or moved object never stands where a removed or moved one stood (only a swap puts an
-object there), so each change has a place of its own.
+Objects rest on a support (floor, table top or shelf top) by their lowest vertex and only
+turn about z. A new or moved object never stands where a removed or moved one stood (only a
+swap puts an object there), so each change has a place of its own. Distractors (objects
+outside the library) are added in the after capture, on the floor.
 """
 
 from __future__ import annotations
@@ -17,8 +18,8 @@ import numpy as np
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, make_rigid
 from workers.pipeline.synth.markers import MarkerSheet, marker_sheet, rot_z
-from workers.pipeline.synth.options import SCENARIOS, RoomOptions, SynthOptions
-from workers.pipeline.synth.shapes import Mesh, ObjectModel, box, merge
+from workers.pipeline.synth.options import LAYOUTS, SCENARIOS, RoomOptions, SynthOptions
+from workers.pipeline.synth.shapes import Mesh, ObjectModel, box, distractor_model, merge
 from workers.pipeline.synth.texture import SolidTexture
 
 
@@ -47,6 +48,39 @@ class StaticSurface:
     texture: SolidTexture
 
 
+@dataclass(frozen=True)
+class Support:
+    """A level surface objects stand on: ``name``, the centre (x, y) and size (x, y) of its
+    rectangle in metres (the floor's is the placement disc's bounding square) and its height
+    ``z_m`` above the floor."""
+
+    name: str
+    centre_m: tuple[float, float]
+    size_m: tuple[float, float]
+    z_m: float
+
+    def to_json(self) -> dict[str, object]:
+        return {
+            "name": self.name,
+            "centre_m": list(self.centre_m),
+            "size_m": list(self.size_m),
+            "z_m": self.z_m,
+        }
+
+
+def supports(room: RoomOptions) -> tuple[Support, ...]:
+    """The floor, then the table top and the shelf's top board when the room has them."""
+    d = 2.0 * room.placement_radius_m
+    out = [Support("floor", (0.0, 0.0), (d, d), 0.0)]
+    if room.table:
+        (w, dpt, h), (x, y) = room.table_size_m, room.table_centre_m
+        out.append(Support("table", (x, y), (w, dpt), h))
+    if room.shelf:
+        (w, dpt, h), (x, y) = room.shelf_size_m, room.shelf_centre_m
+        out.append(Support("shelf", (x, y), (w - 0.06, dpt), h))
+    return tuple(out)
+
+
 @dataclass(frozen=True, eq=False)
 class Scenario:
     """A before/after pair with its ground-truth changes (docs/contract.md change fields)."""
@@ -59,6 +93,8 @@ class Scenario:
     before: tuple[Placement, ...]
     after: tuple[Placement, ...]
     changes: tuple[dict[str, Any], ...] = field(default=())
+    supports: tuple[Support, ...] = ()
+    distractors: tuple[ObjectModel, ...] = ()
 
     def capture(self, name: str) -> tuple[Placement, ...]:
         """The placements of capture ``before`` or ``after``."""
@@ -67,11 +103,53 @@ class Scenario:
         return self.before if name == "before" else self.after
 
 
+# (floor colours, wall colours) of texture variants 1..; variant 0 is the original look
+_PALETTES: tuple[tuple[tuple[tuple[float, float, float], ...], ...], ...] = (
+    (((0.62, 0.5, 0.36), (0.38, 0.27, 0.18)), ((0.85, 0.85, 0.82), (0.6, 0.62, 0.66))),
+    (((0.35, 0.38, 0.42), (0.22, 0.24, 0.27)), ((0.7, 0.76, 0.7), (0.5, 0.42, 0.36))),
+    (((0.7, 0.68, 0.6), (0.5, 0.36, 0.3)), ((0.62, 0.66, 0.78), (0.82, 0.8, 0.72))),
+)
+
+
+def _room_textures(room: RoomOptions) -> tuple[SolidTexture, SolidTexture]:
+    """(floor, wall) textures of ``room.texture_variant``."""
+    if room.texture_variant == 0:
+        return (
+            SolidTexture((0.55, 0.55, 0.52), (0.42, 0.4, 0.36), seed=1, scale=0.7),
+            SolidTexture((0.78, 0.74, 0.64), (0.45, 0.55, 0.62), seed=2, scale=1.5),
+        )
+    if room.texture_variant < 0:
+        raise InputError(f"texture_variant must be ≥ 0, got {room.texture_variant}")
+    (fa, fb), (wa, wb) = _PALETTES[(room.texture_variant - 1) % len(_PALETTES)]
+    seed = 10 * room.texture_variant
+    return (
+        SolidTexture(fa, fb, seed=seed + 1, scale=0.6 + 0.1 * room.texture_variant),
+        SolidTexture(wa, wb, seed=seed + 2, scale=1.2 + 0.2 * room.texture_variant),
+    )
+
+
+def _shelf(room: RoomOptions) -> StaticSurface:
+    """An open shelf unit: two side panels (along y), a middle board and the top board."""
+    (w, d, h), (x, y) = room.shelf_size_m, room.shelf_centre_m
+    t = 0.03
+    parts = [
+        box((w, d, t), (x, y, h - t / 2)),
+        box((w - 2 * t, d, t), (x, y, h / 2)),
+    ]
+    for sx in (-1, 1):
+        parts.append(box((t, d, h - t), (x + sx * (w / 2 - t / 2), y, (h - t) / 2)))
+    paint = SolidTexture((0.86, 0.84, 0.8), (0.55, 0.5, 0.46), seed=4, scale=0.5)
+    return StaticSurface("shelf", merge(parts), paint)
+
+
 def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
-    """Floor, four walls and the optional table, as meshes in the environment frame."""
+    """Floor, the walls of ``room.layout`` and the optional table and shelf, as meshes in the
+    environment frame. InputError for an unknown layout."""
+    if room.layout not in LAYOUTS:
+        raise InputError(f"unknown room layout {room.layout!r}; choose one of {list(LAYOUTS)}")
+    walls = {"closed": (0, 1, 2, 3), "one_wall": (2,), "two_walls": (0, 2)}[room.layout]
     half, height = room.size_m / 2.0, room.wall_height_m
-    floor_tex = SolidTexture((0.55, 0.55, 0.52), (0.42, 0.4, 0.36), seed=1, scale=0.7)
-    wall_tex = SolidTexture((0.78, 0.74, 0.64), (0.45, 0.55, 0.62), seed=2, scale=1.5)
+    floor_tex, wall_tex = _room_textures(room)
     t = 0.05
     out = [StaticSurface("floor", box((room.size_m, room.size_m, t), (0, 0, -t / 2)), floor_tex)]
     for k, (sx, sy, cx, cy) in enumerate(
@@ -82,6 +160,8 @@ def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
             (room.size_m, t, 0.0, -half - t / 2),
         ]
     ):
+        if k not in walls:
+            continue
         out.append(
             StaticSurface(f"wall_{k}", box((sx, sy, height), (cx, cy, height / 2)), wall_tex)
         )
@@ -95,6 +175,8 @@ def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
                 parts.append(box((0.04, 0.04, h - top), leg))
         wood = SolidTexture((0.62, 0.43, 0.25), (0.4, 0.26, 0.14), seed=3, scale=0.5)
         out.append(StaticSurface("table", merge(parts), wood))
+    if room.shelf:
+        out.append(_shelf(room))
     return tuple(out)
 
 
@@ -109,12 +191,13 @@ def _rest_pose(model: ObjectModel, xy: np.ndarray, yaw_rad: float, support_z: fl
 
 class _Placer:
     """Rejection sampling of free resting poses: circles around each object's z axis must
-    not overlap each other, the marker tiles or the table (floor objects), and table objects
-    must lie within the table top."""
+    not overlap each other, the marker tiles or the raised supports (floor objects), and
+    objects on a table or shelf must lie within its top."""
 
     def __init__(self, room: RoomOptions, markers: MarkerSheet, rng: np.random.Generator):
         self.room, self.markers, self.rng = room, markers, rng
         self.margin = 0.03
+        self.supports = {s.name: s for s in supports(room)}
 
     def _free(
         self, model: ObjectModel, xy: np.ndarray, support: str, others: Sequence[Placement]
@@ -126,19 +209,26 @@ class _Placer:
             other_xy, other_r = other.footprint_env()
             if float(np.linalg.norm(other_xy - xy)) < r + other_r + self.margin:
                 return False
-        (w, dpt, _), centre = self.room.table_size_m, np.asarray(self.room.table_centre_m)
-        gap = np.abs(xy - centre) - np.asarray([w / 2, dpt / 2])
-        if support == "table":
-            return bool(np.all(gap <= -r))
+        if support != "floor":
+            return bool(np.all(self._gap(support, xy) <= -r))
         if float(np.linalg.norm(xy)) > self.room.placement_radius_m:
             return False
-        if self.room.table and float(np.linalg.norm(np.maximum(gap, 0.0))) < r + self.margin:
-            return False
+        for name in self.supports:
+            gap = self._gap(name, xy)
+            if name != "floor" and float(np.linalg.norm(np.maximum(gap, 0.0))) < r + self.margin:
+                return False
         tile = self.markers.tile_radius_m()
         return all(
             float(np.linalg.norm(pose[:2, 3] - xy)) >= r + tile + self.margin
             for pose in self.markers.env_from_marker.values()
         )
+
+    def _gap(self, support: str, xy: np.ndarray) -> np.ndarray:
+        """(2,) signed distances in metres from the rectangle of ``support`` to ``xy`` along
+        x and y (negative inside)."""
+        s = self.supports[support]
+        gap: np.ndarray = np.abs(xy - np.asarray(s.centre_m)) - np.asarray(s.size_m) / 2
+        return gap
 
     def place(
         self,
@@ -148,20 +238,22 @@ class _Placer:
         near_xy: np.ndarray | None = None,
         away_from: Placement | None = None,
         min_move_m: float = 0.0,
+        floor_only: bool = False,
     ) -> Placement:
         """A free pose for ``model`` (``xy`` below is where its footprint centre goes); near
         ``near_xy`` (swaps) or ≥ ``min_move_m`` away from ``away_from`` (moves). Raises
         _NoRoom when no free pose is found."""
-        supports = ["floor", "table"] if self.room.table else ["floor"]
+        names = ["floor"] if floor_only else list(self.supports)
         for attempt in range(400):
-            support = supports[int(self.rng.integers(len(supports)))]
+            support = names[int(self.rng.integers(len(names)))]
             if near_xy is not None:
                 spread = 0.02 + 0.3 * attempt / 400
                 xy = near_xy + self.rng.normal(0.0, spread, 2)
                 support = "floor" if away_from is None else away_from.support
-            elif support == "table":
-                half = np.asarray(self.room.table_size_m[:2]) / 2
-                xy = np.asarray(self.room.table_centre_m) + self.rng.uniform(-half, half)
+            elif support != "floor":
+                s = self.supports[support]
+                half = np.asarray(s.size_m) / 2
+                xy = np.asarray(s.centre_m) + self.rng.uniform(-half, half)
             else:
                 radius = self.room.placement_radius_m * np.sqrt(self.rng.uniform())
                 angle = self.rng.uniform(0.0, 2.0 * np.pi)
@@ -172,7 +264,7 @@ class _Placer:
                     continue
             if not self._free(model, xy, support, others):
                 continue
-            support_z = self.room.table_size_m[2] if support == "table" else 0.0
+            support_z = self.supports[support].z_m
             yaw = self.rng.uniform(-np.pi, np.pi)
             return Placement(instance_id, model, _rest_pose(model, xy, yaw, support_z), support)
         raise _NoRoom(f"no free place for {model.name}")
@@ -205,6 +297,8 @@ def build_scenario(
     The last non-symmetric model is held back as the spare (it appears in ``added``,
     ``swapped`` and ``multiple``); every other model stands in the before capture. A layout
     that paints itself into a corner is redrawn (deterministically from ``seed``).
+    ``options.target`` names the model that is removed, moved or swapped out;
+    ``options.distractors`` are added in the after capture with unidentified changes.
     """
     if scenario not in SCENARIOS:
         raise InputError(f"unknown scenario {scenario!r}; choose one of {list(SCENARIOS)}")
@@ -219,6 +313,9 @@ def build_scenario(
         raise InputError(f"scenario 'symmetric_moved' needs a symmetric object among {names}")
     if scenario in ("moved", "multiple") and all(m.symmetry is not None for m in staying):
         raise InputError(f"scenario {scenario!r} needs two non-symmetric objects among {names}")
+    if options.target is not None and options.target not in [m.name for m in staying]:
+        raise InputError(f"target {options.target!r} is not among the staying objects")
+    distractors = tuple(distractor_model(name) for name in options.distractors)
     markers = marker_sheet(options.room)
     for attempt in range(50):
         placer = _Placer(options.room, markers, np.random.default_rng([seed, 1, attempt]))
@@ -226,6 +323,7 @@ def build_scenario(
             before, after, changes = _layout(
                 scenario, staying, models[spare_index], placer, options
             )
+            _add_distractors(distractors, placer, before, after, changes)
         except _NoRoom:
             continue
         return Scenario(
@@ -237,6 +335,8 @@ def build_scenario(
             tuple(before),
             tuple(after),
             tuple(changes),
+            supports(options.room),
+            distractors,
         )
     raise InputError(f"no room for {names} in this room; use fewer or smaller objects")
 
@@ -264,6 +364,9 @@ def _layout(
         pool = [
             p for p in after if symmetric is None or (p.model.symmetry is not None) == symmetric
         ]
+        chosen = [p for p in pool if p.model.name == options.target]
+        if chosen:
+            return chosen[0]
         return pool[int(rng.integers(len(pool)))]
 
     def move(old: Placement) -> None:
@@ -302,3 +405,21 @@ def _layout(
         move(pick(None))
         add(spare)
     return before, after, changes
+
+
+def _add_distractors(
+    distractors: Sequence[ObjectModel],
+    placer: _Placer,
+    before: list[Placement],
+    after: list[Placement],
+    changes: list[dict[str, Any]],
+) -> None:
+    """Stand each distractor on the floor of the after capture, clear of every object and of
+    every place an object left, with an added change whose expected outcome is unidentified
+    (``object`` None). Raises _NoRoom when no free pose is found."""
+    for k, model in enumerate(distractors):
+        new = placer.place(model, f"distractor-{k:02d}", after + before, floor_only=True)
+        after.append(new)
+        change = _change("added", new, None)
+        change.update(object=None, distractor=model.name, unidentified=True)
+        changes.append(change)

@@ -284,6 +284,54 @@ def builtin_models() -> list[ObjectModel]:
     ]
 
 
+def distractor_model(name: str) -> ObjectModel:
+    """An object outside any library: "unknown_box" (34 × 26 × 22 cm carton) or "column"
+    (a person-sized cylinder, 16 cm radius, 1.75 m tall). InputError for another name."""
+    if name == "unknown_box":
+        return ObjectModel(
+            name,
+            box((0.34, 0.26, 0.22), (0.0, 0.0, 0.11)),
+            _solid((0.72, 0.6, 0.42), (0.5, 0.38, 0.24), 201),
+        )
+    if name == "column":
+        return ObjectModel(
+            name,
+            cylinder(0.16, 0.0, 1.75, 48, bottom=True),
+            _solid((0.3, 0.32, 0.36), (0.7, 0.7, 0.72), 202),
+        )
+    raise InputError(f"unknown distractor {name!r}; choose 'unknown_box' or 'column'")
+
+
+#: The 18 YCB objects of the shared data set, by kind: flat (lying on the floor), tall,
+#: boxes and blocks, cans and round ones.
+YCB_OBJECTS: tuple[str, ...] = (
+    "adjustable_wrench",
+    "extra_large_clamp",
+    "large_clamp",
+    "hammer",
+    "padlock",
+    "power_drill",
+    "pitcher_base",
+    "mustard_bottle",
+    "bleach_cleanser",
+    "windex_bottle",
+    "cracker_box",
+    "sugar_box",
+    "wood_block",
+    "rubiks_cube",
+    "master_chef_can",
+    "tomato_soup_can",
+    "bowl",
+    "mug",
+)
+
+
+def ycb_models(folder: Path, names: tuple[str, ...] | list[str]) -> list[ObjectModel]:
+    """YCB models ``folder/<name>/textured.obj`` in the order given; InputError naming a
+    missing one."""
+    return [load_model(folder / name / "textured.obj", name) for name in names]
+
+
 # YCB classes that are rotationally symmetric about their model z axis (through the xy centre).
 _YCB_SYMMETRIC_Z = frozenset({"bowl", "master_chef_can", "tomato_soup_can"})
 

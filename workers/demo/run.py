@@ -17,7 +17,7 @@ from typing import Any
 
 import httpx
 
-from app.client import check, embedded_service, poll_job, read_json, upload_capture
+from app.client import Client, check, embedded_service, poll_job, read_json
 from workers.demo.evaluate import Match, match_changes
 from workers.demo.report import write_report
 from workers.pipeline.synth import generate, preset
@@ -50,15 +50,15 @@ def _object_library(client: httpx.Client, scene_dir: Path, classes: list[str]) -
 
 
 def _snapshot(client: httpx.Client, env_id: str, scene_dir: Path, capture: str) -> dict[str, Any]:
-    """Upload one capture folder, wait for its reconstruction, print its quality line and
-    return the snapshot."""
-    accepted = upload_capture(
-        client, env_id, scene_dir / capture, idempotency_key=f"demo-{capture}"
-    )
-    job = poll_job(client, accepted["job"]["id"], f"reconstruct {capture}")
+    """Upload one capture folder as a capture station does (packed into one tar, a
+    resumable upload with a content-derived Idempotency-Key: :class:`Client`), wait for its
+    reconstruction, print its quality line and return the snapshot."""
+    with Client(str(client.base_url), ADMIN_KEY) as station:
+        uploaded = station.upload_capture(env_id, scene_dir / capture)
+    job = poll_job(client, uploaded.job, f"reconstruct {capture}")
     if job["state"] != "succeeded":
         raise SystemExit(f"reconstruction of '{capture}' failed: {job.get('error')}")
-    snap = check(client.get(f"/v1/snapshots/{accepted['snapshot']['id']}"), 200)
+    snap = check(client.get(f"/v1/snapshots/{uploaded.snapshot}"), 200)
     q = snap["quality"]
     residual = q.get("alignment_residual_m")
     aligned = (

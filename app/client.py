@@ -409,7 +409,8 @@ class Client:
         self, snapshot_id: str, timeout_s: float = 3600.0, poll_s: float = 0.5
     ) -> dict[str, Any] | None:
         """After a snapshot's job: its automatic comparison once that is final (None when the
-        snapshot started the twin or was skipped). TimeoutError after ``timeout_s``."""
+        snapshot started the twin or was skipped). ApiError 409 ``TwinBlocked`` when an
+        earlier failed comparison holds the twin; TimeoutError after ``timeout_s``."""
         deadline = time.monotonic() + timeout_s
         while True:
             snap = self.snapshot(snapshot_id)
@@ -419,6 +420,17 @@ class Client:
                     return self.comparison(snap["comparison"])
             elif snap.get("twin_update") or snap["state"] in ("failed", "cancelled"):
                 return None
+            else:
+                twin = self.get(f"/v1/environments/{snap['environment']}")["twin"]
+                if twin["status"] == "blocked":
+                    held = twin.get("comparison")
+                    raise ApiError(
+                        409,
+                        "TwinBlocked",
+                        f"comparison {held} failed and holds the twin before this snapshot; "
+                        f"retry it (POST /v1/comparisons/{held}/retry)",
+                        f"snapshot {snapshot_id}",
+                    )
             if time.monotonic() > deadline:
                 raise TimeoutError(f"snapshot {snapshot_id}: no outcome after {timeout_s} s")
             self.sleep(poll_s)

@@ -184,3 +184,36 @@ def test_upload_resumes_from_the_offset_after_a_dropped_connection(tmp_path: Pat
     # progress from 0 to the end, back to the resume point (half the first chunk) once
     assert (seen[0], seen[-1]) == (0, archive.stat().st_size)
     assert 20_000 in seen[seen.index(40_000) :]
+
+
+@pytest.mark.parametrize(
+    ("snapshot", "twin_status", "expected"),
+    [
+        ({"comparison": "c1", "twin_update": None}, "current", "c1"),
+        ({"comparison": None, "twin_update": "baseline"}, "current", None),
+        ({"comparison": None, "twin_update": None}, "blocked", "TwinBlocked"),
+    ],
+)
+def test_outcome_is_the_comparison_none_for_a_baseline_or_says_the_twin_is_blocked(
+    snapshot: dict[str, object], twin_status: str, expected: str | None
+) -> None:
+    def service(request: httpx.Request) -> httpx.Response:
+        path = request.url.path
+        if path == "/v1/snapshots/s1":
+            return httpx.Response(
+                200, json={"state": "reconstructed", "environment": "e1", **snapshot}
+            )
+        if path == "/v1/comparisons/c1":
+            return httpx.Response(200, json={"id": "c1", "job": "j2", "state": "succeeded"})
+        if path == "/v1/jobs/j2":
+            return httpx.Response(200, json={"state": "succeeded"})
+        assert path == "/v1/environments/e1"
+        return httpx.Response(200, json={"twin": {"status": twin_status, "comparison": "c0"}})
+
+    client = Client("http://svc", "k", transport=httpx.MockTransport(service))
+    if expected == "TwinBlocked":
+        with pytest.raises(ApiError, match=r"TwinBlocked: comparison c0 failed .* /v1/comparisons/c0/retry"):
+            client.outcome("s1")
+        return
+    found = client.outcome("s1")
+    assert (found["id"] if found else None) == expected

@@ -212,7 +212,9 @@ def test_outcome_is_the_comparison_none_for_a_baseline_or_says_the_twin_is_block
 
     client = Client("http://svc", "k", transport=httpx.MockTransport(service))
     if expected == "TwinBlocked":
-        with pytest.raises(ApiError, match=r"TwinBlocked: comparison c0 failed .* /v1/comparisons/c0/retry"):
+        with pytest.raises(
+            ApiError, match=r"TwinBlocked: comparison c0 failed .* /v1/comparisons/c0/retry"
+        ):
             client.outcome("s1")
         return
     found = client.outcome("s1")

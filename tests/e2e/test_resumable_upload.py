@@ -196,6 +196,10 @@ def test_a_200_mb_upload_cut_at_30_60_90_percent_resumes_into_one_snapshot(
     assert proxy.n_cuts == 3
     assert result.resumes >= 3
     assert proxy.sent <= 1.1 * packed.size, (proxy.sent, packed.size)
+    print(
+        f"{proxy.sent} bytes through the proxy for a {packed.size}-byte upload "
+        f"({proxy.sent / packed.size:.3f}x), {result.resumes} resumes"
+    )
     snaps = service.snapshots(env_id)
     assert [s["id"] for s in snaps] == [result.snapshot]
     assert snaps[0]["upload_bytes"] == sum(

@@ -12,10 +12,13 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, sessionmaker
 
+from app.api.limits import body_limit
 from app.core.models import Snapshot
+from app.core.settings import get_settings
 from tests.app.api.test_snapshots_upload import CLASSES, make_env, set_limits, stored_files
+from tests.app.api.test_upload_limits import BOUNDARY, MB, drive, multipart_chunks
 from tests.app.conftest import Keys, SentTasks
 from tests.workers.pipeline.scan_scene import cloud, write_e57, write_las, write_ply
 
@@ -245,3 +248,33 @@ def test_a_read_key_cannot_upload_a_scan(client: TestClient, keys: Keys, tmp_pat
     env_id = make_env(client, keys)
     r = post_scan(client, keys, env_id, scan_bytes(tmp_path, "ply"), who="read")
     assert r.status_code == 403
+
+
+def test_a_scan_body_over_max_scan_bytes_is_413_before_reading(
+    session_factory: sessionmaker[Session], keys: Keys, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The body cap of the scans route is max_scan_bytes (plus the framing), not the photo
+    upload's: checked by BodyGuard before a byte is read (declared) or cut off (chunked)."""
+    from app.core import environments
+
+    with session_factory.begin() as s:
+        env_id = environments.create(s, "line-1", CLASSES, None, None).id
+    set_limits(monkeypatch, max_scan_bytes=10 * MB, max_upload_bytes=100 * MB)
+    path = f"/v1/environments/{env_id}/scans"
+    cap, what = body_limit("POST", path, get_settings())
+    assert what == f"max_scan_bytes ({10 * MB})" and cap < 15 * MB
+    chunks = list(multipart_chunks(40 * MB, "file", "big.e57"))
+    for declared in (True, False):
+        answer = drive(
+            "POST",
+            path,
+            iter(chunks),
+            {
+                "Content-Type": f"multipart/form-data; boundary={BOUNDARY}",
+                **keys.headers("capture"),
+            },
+            sum(map(len, chunks)) if declared else None,
+        )
+        assert (answer.status, answer.body["error"]) == (413, "PayloadTooLarge"), answer
+        assert "max_scan_bytes" in answer.body["detail"]
+        assert answer.read_bytes <= (0 if declared else cap + MB)

@@ -3,7 +3,7 @@
     python -m bench.run [--only poll,c2c] [--quick]
 
 Runs the sub-benchmarks in order (poll, upload, reconstruct on the bench scene and on two
-other generated scenes, pose, scenarios, c2c, colmap),
+other generated scenes, pose, scenarios, the tuning and test worlds, c2c, colmap),
 each as a subprocess so one failure does not lose the others; records each one's exit
 status and wall time and writes ``bench/results/summary.json`` with the headline figures
 of every result file. Before running, as root, installs the tools some comparisons need
@@ -136,6 +136,13 @@ def _scenarios(d: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _world_set(d: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "set": d.get("set"),
+        **{name: v.get("summary") for name, v in d.get("variants", {}).items()},
+    }
+
+
 def _c2c(d: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"points": d.get("points")}
     for name, row in d.get("directions", {}).items():
@@ -213,6 +220,18 @@ BENCHES: tuple[Bench, ...] = (
         (),
         ("--quick",),
         headline=_scenarios,
+    ),
+    # the split of bench/worlds.py: tune on the first, report the second (bench/README.md)
+    *(
+        Bench(
+            f"scenarios_{name}",
+            "bench.scenarios_bench",
+            f"scenarios_{name}.json",
+            ("--set", name, "--real-camera"),
+            ("--set", name, "--quick"),
+            headline=_world_set,
+        )
+        for name in ("tuning", "test")
     ),
     Bench("c2c", "bench.c2c_bench", "c2c.json", (), ("--quick",), headline=_c2c),
     Bench("colmap", "bench.colmap_bench", "reconstruct_colmap.json", headline=_colmap),

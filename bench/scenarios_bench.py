@@ -1,6 +1,7 @@
 """Accuracy of the whole pipeline on generated YCB scenes with ground truth.
 
     python -m bench.scenarios_bench [--quick] [--scenarios moved,multiple] [--seed 1]
+    python -m bench.scenarios_bench --set tuning|test [--real-camera] [--quick]
 
 For each scenario the synth generator lays out YCB objects (Calli et al. 2015, CC BY 4.0;
 read from ../shared/data/ycb or $TWINDELTA_SHARED_DATA/ycb), renders both captures, and
@@ -15,6 +16,13 @@ detections). Also: every scenario again with a clean detector (no misses or fals
 jitter kept), one robustness run with 10 % missed and 5 % false boxes, reconstruction
 quality per capture against the true surfaces, and stage timings. Writes
 ``bench/results/scenarios.json``.
+
+With ``--set`` the scenes are the worlds of :mod:`bench.worlds` instead: the tuning set
+(tune options and thresholds on it only) or the test set (other objects, rooms and seeds;
+report, never tune), each world with its own objects as the library, distractors that must
+come out unidentified, and with ``--real-camera`` each world again through a real camera
+(lens distortion declared or left to SfM, exposure and white balance, blur, noise, JPEG).
+Writes ``bench/results/scenarios_<set>.json`` with the set's name in it.
 
 Reconstructions are cached under the work folder by a hash of their inputs (the before
 capture is the same in every scenario of one seed), prepared models under bench/.cache/.
@@ -39,11 +47,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from app.formats.cameras import read_cameras
 from bench.reconstruct_bench import (
     camera_metrics,
     cloud_metrics,
     visible_surface_samples,
 )
+from bench.worlds import SETS, World, real_camera
 from workers.demo.evaluate import match_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.files import cameras_from_file, read_cameras_file
@@ -61,6 +71,7 @@ from workers.pipeline.synth import (
     SCENARIOS,
     PathOptions,
     build_scenario,
+    distractor_model,
     generate,
     load_model,
     load_true_surfaces,
@@ -132,9 +143,9 @@ def reconstruct_capture(
     by a hash of the images, options and reference cloud; returns (work dir, quality,
     whether it was cached)."""
     images = scene_dir / capture / "images"
-    raw = json.loads((scene_dir / capture / "cameras.json").read_text())
+    intrinsics = _declared_intrinsics(scene_dir, capture)
     reference = json.loads((scene_dir / "reference.json").read_text())
-    key = _hash_inputs(images, preset, raw["intrinsics"], reference, reference_cloud)
+    key = _hash_inputs(images, preset, intrinsics, reference, reference_cloud)
     out = work / "reconstructions" / key
     if (out / "quality.json").is_file() and (out / "cloud.ply").is_file():
         return out, json.loads((out / "quality.json").read_text()), True
@@ -143,11 +154,27 @@ def reconstruct_capture(
         images,
         out,
         options_from_preset(preset),
-        parse_cameras({"intrinsics": raw["intrinsics"]}),
+        None if intrinsics is None else parse_cameras({"intrinsics": intrinsics}),
         reference,
         reference_cloud,
     )
     return out, res.quality, False
+
+
+def _declared_intrinsics(scene_dir: Path, capture: str) -> dict[str, Any] | None:
+    """The capture's cameras.json intrinsics; None when it declares none (self-calibration)."""
+    path = scene_dir / capture / "cameras.json"
+    if not path.is_file():
+        return None
+    intrinsics = json.loads(path.read_text()).get("intrinsics")
+    return None if intrinsics is None else dict(intrinsics)
+
+
+def _pinhole(intrinsics: dict[str, Any]) -> dict[str, Any]:
+    """PINHOLE intrinsics [fx, fy, cx, cy] of any cameras.json model (the lens left out)."""
+    camera = read_cameras({"intrinsics": intrinsics}).intrinsics
+    assert camera is not None
+    return {**intrinsics, "model": "PINHOLE", "params": list(camera.pinhole)}
 
 
 def capture_quality(scene_dir: Path, capture: str, recon: Path) -> dict[str, Any]:
@@ -157,8 +184,11 @@ def capture_quality(scene_dir: Path, capture: str, recon: Path) -> dict[str, Any
     if cached.is_file():
         return dict(json.loads(cached.read_text()))
     gt = json.loads((scene_dir / "ground_truth.json").read_text())
-    raw = json.loads((scene_dir / capture / "cameras.json").read_text())
-    cams = {"intrinsics": raw["intrinsics"], "poses": gt["camera_poses"][capture]}
+    # the true camera (lens included) of an extended scene, else the declared one; the
+    # visibility samples use its pinhole part (a lens moves them by a few pixels at most)
+    intrinsics = gt.get("camera") or _declared_intrinsics(scene_dir, capture)
+    assert intrinsics is not None
+    cams = {"intrinsics": _pinhole(intrinsics), "poses": gt["camera_poses"][capture]}
     meshes = load_true_surfaces(scene_dir, capture)
     cloud, _ = read_ply(recon / "cloud.ply")
     visible = visible_surface_samples(meshes, cams)
@@ -244,8 +274,12 @@ def score(
     truth: dict[str, Any], records: list[dict[str, Any]], result: CompareResult
 ) -> dict[str, Any]:
     """Changes found with the right type and object, false changes, identification metrics
-    of the true class and the best other class, symmetry-aware pose errors."""
-    matches, unmatched = match_changes(truth, records)
+    of the true class and the best other class, symmetry-aware pose errors, and what came
+    of each distractor (:func:`score_distractors`)."""
+    library = [c for c in truth["changes"] if not c.get("unidentified")]
+    matches, unmatched = match_changes({**truth, "changes": library}, records)
+    distractors = score_distractors(truth, unmatched)
+    explained = {d["cluster"] for d in distractors if d["outcome"] == "unidentified"}
     metrics_by_cluster = {c.id: c.metrics for c in result.clusters}
     rows = []
     for m in matches:
@@ -282,9 +316,48 @@ def score(
             for f in unmatched
             if f.get("object") is not None
         ],
-        # clusters no class explains (reported, never applied to the twin)
-        "unidentified": sum(1 for f in unmatched if f.get("object") is None),
+        # clusters no class explains (reported, never applied to the twin), distractors'
+        # own aside
+        "unidentified": sum(
+            1 for f in unmatched if f.get("object") is None and f["cluster"]["id"] not in explained
+        ),
+        "distractors": distractors,
     }
+
+
+DISTRACTOR_REACH_M = 0.15  # a found change this far outside a distractor's footprint is not its
+
+
+def score_distractors(
+    truth: dict[str, Any], unmatched: list[dict[str, Any]]
+) -> list[dict[str, Any]]:
+    """Per true distractor change (``unidentified`` in the ground truth): the found change
+    whose cluster centroid lies nearest its footprint centre in xy, within its footprint
+    radius + DISTRACTOR_REACH_M; ``outcome`` "unidentified" (right), "identified" (a
+    library object: wrong, also counted as a false change) or "missed"."""
+    out = []
+    for change in truth["changes"]:
+        if not change.get("unidentified"):
+            continue
+        centre = np.asarray(change["pose"])[:2, 3]
+        model = distractor_model(change["distractor"])
+        reach = model.footprint_radius_m() + DISTRACTOR_REACH_M
+        distances = [
+            (float(np.linalg.norm(np.asarray(f["cluster"]["centroid"][:2]) - centre)), f)
+            for f in unmatched
+        ]
+        near = sorted((t for t in distances if t[0] <= reach), key=lambda t: t[0])
+        row: dict[str, Any] = {"distractor": change.get("distractor"), "outcome": "missed"}
+        if near:
+            dist, found = near[0]
+            row.update(
+                outcome="unidentified" if found.get("object") is None else "identified",
+                identified_as=found.get("object"),
+                cluster=found["cluster"]["id"],
+                distance_m=round(dist, 3),
+            )
+        out.append(row)
+    return out
 
 
 def oracle_metrics(
@@ -513,9 +586,119 @@ def summarise(runs: dict[str, dict[str, Any]]) -> dict[str, Any]:
             verdicts[key] = "met" if value >= target else "not met"
         else:
             verdicts[key] = "met" if value <= target else "not met"
+    distractors = [d for run in runs.values() for d in run["ours"].get("distractors", [])]
+    if distractors:
+        # a distractor must come out unidentified, never as a library object
+        outcomes = [d["outcome"] for d in distractors]
+        figures["distractors"] = len(distractors)
+        figures["distractors_unidentified"] = outcomes.count("unidentified")
+        figures["distractors_identified_as_library"] = outcomes.count("identified")
+        figures["distractors_missed"] = outcomes.count("missed")
+        verdicts["distractors_identified_as_library"] = (
+            "met" if figures["distractors_identified_as_library"] == 0 else "not met"
+        )
     figures["targets"] = TARGETS
     figures["verdicts"] = verdicts
     return figures
+
+
+TUNING_RULE = (
+    "tune options and thresholds only on the tuning set; the test set (other objects, rooms "
+    "and seeds) is reported, never tuned on"
+)
+
+
+def run_world(
+    args: argparse.Namespace,
+    world: World,
+    synth: Any,
+    variant: str,
+    ycb: dict[str, Any],
+    models: dict[str, PreparedModel],
+    recon_preset: str,
+) -> dict[str, Any]:
+    """One world of a set through the whole pipeline (:func:`run_scenario`), its scene
+    cached under a tag holding a hash of its options."""
+    tag = f"{args.set}_{world.name}_{variant}_{_hash_inputs(repr(synth), world)[:8]}"
+    run = run_scenario(
+        args.work,
+        world.scenario,
+        world.seed,
+        synth,
+        tag,
+        recon_preset,
+        [ycb[n] for n in world.objects],
+        models,
+        (),
+    )
+    run["world"] = {
+        "scenario": world.scenario,
+        "objects": list(world.objects),
+        "room": world.room,
+        "path": world.path,
+        "seed": world.seed,
+        "target": world.target,
+        "distractors": list(world.distractors),
+    }
+    run["effects"] = vars(synth.effects) if synth.effects.active else None
+    return run
+
+
+def run_world_set(args: argparse.Namespace) -> int:
+    """``--set tuning|test``: every world of the set (and with ``--real-camera`` each one
+    again through a real camera), reported per variant with the set's name; writes
+    ``bench/results/scenarios_<set>.json`` unless ``--out`` says otherwise."""
+    t_start = time.perf_counter()
+    worlds = SETS[args.set]
+    base, recon_preset = PRESETS["bench"], "default"
+    if args.quick:
+        base, recon_preset = replace(base, path=PathOptions(n_views=24)), "fast"
+    names = sorted({n for w in worlds for n in w.objects})
+    ycb = {n: load_model(ycb_dir() / n / "textured.obj", n) for n in names}
+    models, prep_s = prepared_models(names)
+    out = args.out or ROOT / "bench" / "results" / f"scenarios_{args.set}.json"
+    report: dict[str, Any] = {
+        "what": f"whole pipeline on the {args.set} worlds of bench/worlds.py vs ground truth",
+        "set": args.set,
+        "rule": TUNING_RULE,
+        "quick": args.quick,
+        "objects": names,
+        "synth": {
+            "preset": "bench",
+            "n_views": base.path.n_views,
+            "detection": vars(base.detection),
+        },
+        "reconstruct_preset": recon_preset,
+        "model_prepare_s": prep_s,
+        "load_average": os.getloadavg(),
+        "cpus": os.cpu_count(),
+        "variants": {},
+    }
+    variants = [("ideal_camera", False)] + ([("real_camera", True)] if args.real_camera else [])
+    failed = False
+    for variant, real in variants:
+        runs: dict[str, Any] = {}
+        report["variants"][variant] = {"scenarios": runs}
+        for index, world in enumerate(worlds):
+            synth = world.options(base)
+            if real:
+                synth = real_camera(synth, index)
+            print(f"[scenarios:{args.set}:{variant}] {world.name} ...", flush=True)
+            try:
+                runs[world.name] = run_world(args, world, synth, variant, ycb, models, recon_preset)
+            except Exception as exc:  # one failing world must not lose the others
+                runs[world.name] = {"error": f"{type(exc).__name__}: {exc}"}
+                failed = True
+                print(f"[scenarios:{args.set}] {world.name} failed: {exc}", flush=True)
+            ok = {k: v for k, v in runs.items() if "error" not in v}
+            report["variants"][variant]["summary"] = summarise(ok) if ok else None
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(report, indent=1, default=float))
+    report["load_average_end"] = os.getloadavg()
+    report["total_s"] = round(time.perf_counter() - t_start, 1)
+    out.write_text(json.dumps(report, indent=1, default=float))
+    print(json.dumps({k: v.get("summary") for k, v in report["variants"].items()}, default=float))
+    return 1 if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -524,16 +707,29 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenarios", default=None, help="comma-separated subset")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--work", type=Path, default=TMP / "scenarios")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scenarios.json")
+    parser.add_argument(
+        "--out", type=Path, help="result file (default bench/results/scenarios[_<set>].json)"
+    )
     parser.add_argument("--no-robustness", action="store_true")
     parser.add_argument(
         "--no-clean-detector", action="store_true", help="skip the run without missed boxes"
+    )
+    parser.add_argument(
+        "--set", choices=sorted(SETS), help="the worlds of bench/worlds.py instead of --scenarios"
+    )
+    parser.add_argument(
+        "--real-camera", action="store_true", help="with --set: each world again, real camera"
     )
     args = parser.parse_args(argv)
     t_start = time.perf_counter()
     if not (ycb_dir() / OBJECTS[0] / "textured.obj").is_file():
         print(f"skipped: YCB models not found under {ycb_dir()}")
         return 2
+    if args.set is not None:
+        return run_world_set(args)
+    if args.real_camera:
+        parser.error("--real-camera goes with --set")
+    args.out = args.out or ROOT / "bench" / "results" / "scenarios.json"
     names = (
         args.scenarios.split(",")
         if args.scenarios

@@ -1,0 +1,72 @@
+"""The scenario benchmark's world sets: distractor scoring and the per-set report (the
+pipeline itself is replaced by a recorder; the real run is ``make bench``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from bench import scenarios_bench
+from bench.scenarios_bench import DISTRACTOR_REACH_M, score_distractors
+from bench.worlds import TEST
+
+
+def _found(obj: str | None, xy: tuple[float, float], cluster: int) -> dict[str, Any]:
+    return {"type": "added", "object": obj, "cluster": {"id": cluster, "centroid": [*xy, 0.5]}}
+
+
+def _truth(xy: tuple[float, float]) -> dict[str, Any]:
+    pose = np.eye(4)
+    pose[:2, 3] = xy
+    change = {"type": "added", "object": None, "pose": pose.tolist(), "unidentified": True}
+    return {"changes": [{**change, "distractor": "column"}, {"type": "removed", "object": "x"}]}
+
+
+def test_a_distractor_is_right_only_when_unidentified() -> None:
+    truth = _truth((0.3, -0.2))
+    near = (0.3 + 0.05, -0.2)
+    (row,) = score_distractors(truth, [_found(None, near, 4), _found("mug", (2.0, 2.0), 5)])
+    assert row["outcome"] == "unidentified" and row["cluster"] == 4
+    (row,) = score_distractors(truth, [_found("padlock", near, 6)])
+    assert row["outcome"] == "identified" and row["identified_as"] == "padlock"
+    far = (0.3 + 0.16 + DISTRACTOR_REACH_M + 0.01, -0.2)
+    (row,) = score_distractors(truth, [_found(None, far, 7)])
+    assert row["outcome"] == "missed"
+
+
+def test_set_report_names_the_set_and_its_variants(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[tuple[str, Any, str]] = []
+
+    def fake_run(
+        work: Path, scenario: str, seed: int, synth: Any, tag: str, *rest: Any
+    ) -> dict[str, Any]:
+        calls.append((scenario, synth, tag))
+        if "multiple" in tag:
+            raise RuntimeError("reconstruction failed")
+        distractors = [{"distractor": d, "outcome": "unidentified"} for d in synth.distractors]
+        ours = {"changes": [], "false_changes": [], "unidentified": 0, "distractors": distractors}
+        return {"ours": ours, "timings_s": {}}
+
+    monkeypatch.setattr(scenarios_bench, "run_scenario", fake_run)
+    monkeypatch.setattr(scenarios_bench, "prepared_models", lambda names: ({}, {}))
+    out = tmp_path / "scenarios_test.json"
+    code = scenarios_bench.main(["--set", "test", "--real-camera", "--out", str(out)])
+    report = json.loads(out.read_text())
+    assert code == 1  # the failing world is reported, the others kept
+    assert report["set"] == "test" and "tuning set" in report["rule"]
+    assert set(report["variants"]) == {"ideal_camera", "real_camera"}
+    for variant in report["variants"].values():
+        assert set(variant["scenarios"]) == {w.name for w in TEST}
+        assert "error" in variant["scenarios"]["multiple"]
+        assert variant["summary"]["distractors_unidentified"] == 2
+    real = [synth for _, synth, tag in calls if "_real_camera_" in tag]
+    ideal = [synth for _, synth, tag in calls if "_ideal_camera_" in tag]
+    assert len(real) == len(ideal) == len(TEST)
+    assert all(s.effects.active for s in real) and not any(s.effects.active for s in ideal)
+    assert len({tag for _, _, tag in calls}) == 2 * len(TEST)

@@ -21,7 +21,7 @@ from app.core import auth, uploads
 from app.core.auth import Principal
 from app.core.db import get_read_session_factory, get_session_factory
 from app.core.enums import UploadState
-from app.core.errors import Conflict, DomainError, PayloadTooLarge, UnsupportedMedia
+from app.core.errors import Conflict, DomainError, NotFound, PayloadTooLarge, UnsupportedMedia
 from app.core.models import ResumableUpload
 from app.core.settings import Settings
 
@@ -378,21 +378,20 @@ async def patch_upload(
     """tus PATCH: append the body at Upload-Offset; the last byte makes the snapshot."""
     start, checksum = chunk.start, chunk.checksum
     upload = await run_in_threadpool(_load, key, upload_id)
-    if upload.state == UploadState.failed:
-        raise _stored_error(upload)
-    if upload.state == UploadState.completed:
-        if start != upload.length:
-            raise Conflict(
-                f"Upload-Offset {start}: upload {upload_id} is complete ({upload.length} bytes)",
-                code="OffsetMismatch",
-            )
-        return _final(upload)
+    if upload.state in (UploadState.completed, UploadState.failed):
+        return _ended(upload, start)
     remaining = max(upload.length - start, 0)
     declared = request.headers.get("content-length")
     receiver = uploads.Receiver(
         storage.path(upload.storage_key), upload.id, start, remaining, checksum
     )
-    await run_in_threadpool(receiver.open)
+    try:
+        await run_in_threadpool(receiver.open)
+    except NotFound:  # another request may have just ended it (and removed its bytes)
+        upload = await run_in_threadpool(_load, key, upload_id)
+        if upload.state in (UploadState.completed, UploadState.failed):
+            return _ended(upload, start)
+        raise
     try:
         if declared is not None and declared.isdigit() and int(declared) > remaining:
             raise PayloadTooLarge(
@@ -416,6 +415,19 @@ async def patch_upload(
     if done.state == UploadState.failed:
         raise _stored_error(done)
     return _final(done)
+
+
+def _ended(upload: ResumableUpload, start: int) -> Response:
+    """The answer for a PATCH to an upload that already ended: its final answer again at
+    its full offset, 409 at another; a refused archive's error."""
+    if upload.state == UploadState.failed:
+        raise _stored_error(upload)
+    if start != upload.length:
+        raise Conflict(
+            f"Upload-Offset {start}: upload {upload.id} is complete ({upload.length} bytes)",
+            code="OffsetMismatch",
+        )
+    return _final(upload)
 
 
 def _final(upload: ResumableUpload) -> Response:

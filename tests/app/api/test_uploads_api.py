@@ -453,3 +453,30 @@ def test_an_unexpected_error_at_the_end_keeps_the_bytes_for_a_retry(
     r = patch(client, keys, url, len(body), b"")  # the last PATCH again, with no bytes
     assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers
     assert sent_tasks.names() == ["snapshot.process"]
+
+
+def test_a_patch_that_loses_the_race_to_the_last_byte_gets_the_final_answer(
+    client: TestClient, keys: Keys, sent_tasks: SentTasks, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Read while receiving, locked after another request completed it (its bytes gone)."""
+    from app.api.routes import uploads as route
+    from app.core.enums import UploadState
+
+    env_id = make_env(client, keys)
+    body = archive()
+    url = create(client, keys, env_id, body).headers["Location"]
+    done = patch(client, keys, url, 0, body)
+    real = route._load
+    calls: list[int] = []
+
+    def stale(key: object, upload_id: str) -> ResumableUpload:
+        upload = real(key, upload_id)  # type: ignore[arg-type]
+        calls.append(1)
+        if len(calls) == 1:
+            upload.state = UploadState.receiving  # as it was a moment earlier
+        return upload
+
+    monkeypatch.setattr(route, "_load", stale)
+    r = patch(client, keys, url, len(body), b"")
+    assert r.status_code == 204 and len(calls) == 2
+    assert r.headers["Twindelta-Snapshot"] == done.headers["Twindelta-Snapshot"]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -23,7 +24,15 @@ from workers.pipeline.geometry import (
 )
 from workers.pipeline.reconstruct.markers import parse_reference
 from workers.pipeline.reconstruct.options import ReconstructOptions
-from workers.pipeline.scan import EmptyScan, NoUsableFrame, ScanInput, scan_to_cloud
+from workers.pipeline.scan import (
+    EmptyScan,
+    NoUsableFrame,
+    ScanInput,
+    ScanOptions,
+    find_sheet,
+    scan_to_cloud,
+)
+from workers.pipeline.scan import markers as scan_markers
 
 VOXEL_M = ReconstructOptions().voxel_size_m  # the density of a photo snapshot's cloud
 
@@ -150,3 +159,33 @@ def test_the_command_line_runs_the_stage(
     assert quality["points_in"] == 300 and (tmp_path / "out" / "cloud.ply").is_file()
     assert main([*args, "--frame", '{"markers": true}']) == 1  # no reference: no sheet
     assert json.loads(capsys.readouterr().out)["error"] == "NoUsableFrame"
+
+
+def test_large_planes_are_rasterised_in_tiles(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Tiles of 400 px (0.6 m, overlapping by two marker sides) instead of one raster: every
+    marker is still found once, and the frame is as good (a plant's floor would otherwise be
+    one image of 10⁸ pixels)."""
+    scan = synthetic_scan(seed=5)
+    reference = parse_reference(scan.sheet.reference())
+    centres = transform_points(
+        scan.scan_from_env, np.asarray([p[:3, 3] for p in reference.poses.values()])
+    )
+    near = np.zeros(len(scan.points_scan), bool)
+    for centre in centres:
+        near |= np.linalg.norm(scan.points_scan - centre, axis=1) < 0.25
+    sides: list[int] = []
+    raster = scan_markers._raster
+
+    def recording(*args: Any) -> Any:
+        img, origin = raster(*args)
+        sides.append(max(img.shape))
+        return img, origin
+
+    monkeypatch.setattr(scan_markers, "_raster", recording)
+    fit = find_sheet(
+        scan.points_scan[near], scan.colors[near], reference, ScanOptions(raster_tile_px=400)
+    )
+    assert len(sides) > 4 and max(sides) <= 400 + 2  # never one image of the whole floor
+    assert fit.used == tuple(sorted(reference.poses))
+    dt, dr = pose_error(invert_rigid(fit.env_from_scan), scan.scan_from_env)
+    assert dt < 0.001 and dr < 0.2

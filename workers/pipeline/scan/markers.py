@@ -144,18 +144,31 @@ def _spacing_m(u: FloatArray, v: FloatArray, cell_m: float = 0.02) -> float:
     return float(np.sqrt(len(cells) * cell_m**2 / max(len(u), 1)))
 
 
-def _detect_tiled(
-    img: NDArray[np.uint8], dictionary: str, tile: int, overlap: int
+def _detect_in_tiles(
+    uv: FloatArray, grey: FloatArray, dictionary: str, options: ScanOptions, overlap_m: float
 ) -> dict[int, FloatArray]:
-    """ArUco corners (id → (4, 2) pixels) in ``img``, searched in overlapping tiles."""
+    """ArUco corners (id → (4, 2) plane coordinates, metres) of points at ``uv`` (N, 2)
+    with their ``grey`` levels, rasterised and searched one tile of at most
+    ``raster_tile_px`` pixels a side at a time (tiles overlap by ``overlap_m``), so a
+    large plane never becomes one huge image."""
     found: dict[int, FloatArray] = {}
-    h, w = img.shape
-    step = max(tile - overlap, 1)
-    for top in range(0, max(h - overlap, 1), step):
-        for left in range(0, max(w - overlap, 1), step):
-            part = img[top : top + tile, left : left + tile]
-            for marker_id, px in detect_markers(part, dictionary).items():
-                found.setdefault(marker_id, px + np.asarray([left, top], np.float64))
+    step = options.raster_tile_px * options.raster_m - overlap_m
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    for u0 in np.arange(lo[0], max(hi[0] - overlap_m, lo[0]) + 1e-9, step):
+        in_u = np.flatnonzero((uv[:, 0] >= u0) & (uv[:, 0] < u0 + step + overlap_m))
+        for v0 in np.arange(lo[1], max(hi[1] - overlap_m, lo[1]) + 1e-9, step):
+            tile = in_u[(uv[in_u, 1] >= v0) & (uv[in_u, 1] < v0 + step + overlap_m)]
+            if len(tile) < 3:
+                continue
+            img, origin = _raster(uv[tile], grey[tile], options.raster_m)
+            for marker_id, px in detect_markers(img, dictionary).items():
+                at = np.column_stack(
+                    [
+                        origin[0] + px[:, 0] * options.raster_m,
+                        origin[1] - px[:, 1] * options.raster_m,
+                    ]
+                )
+                found.setdefault(marker_id, at)
     return found
 
 
@@ -172,17 +185,15 @@ def _corners_on_plane(
     local = points[plane.index] - plane.origin
     if _spacing_m(local @ plane.u, local @ plane.v) > options.max_point_spacing_m:
         return best  # too sparse to show a marker's cells
-    overlap = int(np.ceil(2.0 * reference.size_m / options.raster_m))
     for side in (1.0, -1.0):
         v = side * plane.v  # flipping v flips the normal: the other face
         uv = np.column_stack([local @ plane.u, local @ v])
-        img, origin = _raster(uv, grey[plane.index], options.raster_m)
-        found = _detect_tiled(img, reference.dictionary, options.raster_tile_px, overlap)
+        found = _detect_in_tiles(
+            uv, grey[plane.index], reference.dictionary, options, 2.0 * reference.size_m
+        )
         corners = {
-            marker_id: plane.origin
-            + np.outer(origin[0] + px[:, 0] * options.raster_m, plane.u)
-            + np.outer(origin[1] - px[:, 1] * options.raster_m, v)
-            for marker_id, px in found.items()
+            marker_id: plane.origin + np.outer(at[:, 0], plane.u) + np.outer(at[:, 1], v)
+            for marker_id, at in found.items()
             if marker_id in reference.poses
         }
         if len(corners) > len(best):

@@ -38,6 +38,7 @@ from workers.pipeline.synth import (
     ycb_models,
 )
 from workers.pipeline.synth.cameras import intrinsics_matrix, look_at
+from workers.pipeline.synth.cli import cli
 from workers.pipeline.synth.markers import marker_corners_m, marker_sheet
 from workers.pipeline.synth.options import RoomOptions
 from workers.pipeline.synth.render import Renderer, distort_normalised
@@ -374,3 +375,15 @@ def test_model_loads_ycb_symmetry(shared_data: Path) -> None:
     can, bowl = ycb_models(shared_data / "ycb", ["master_chef_can", "bowl"])
     assert can.symmetry is not None and bowl.symmetry is not None
     assert load_model(shared_data / "ycb" / "padlock" / "textured.obj").symmetry is None
+
+
+def test_cli_builds_a_wider_world(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--scenario", "removed", "--out", str(tmp_path), "--preset", "tiny", "--views", "1"]
+    world = ["--room", "one_wall", "--path", "low_high", "--real-camera"]
+    assert cli([*args, *world, "--distractors", "column", "--target", "crate"]) == 0
+    gt = json.loads((tmp_path / "ground_truth.json").read_text())
+    assert gt["room"]["layout"] == "one_wall" and gt["effects"]["distortion"] == "OPENCV"
+    assert [c.get("distractor") for c in gt["changes"]] == [None, "column"]
+    assert gt["changes"][0]["object"] == "crate"
+    assert cli([*args, "--distractors", "ghost"]) == 1
+    assert "unknown distractor" in capsys.readouterr().err

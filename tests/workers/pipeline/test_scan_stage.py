@@ -29,6 +29,7 @@ from workers.pipeline.scan import (
     NoUsableFrame,
     ScanInput,
     ScanOptions,
+    ScanTooDense,
     find_sheet,
     scan_to_cloud,
 )
@@ -189,3 +190,18 @@ def test_large_planes_are_rasterised_in_tiles(monkeypatch: pytest.MonkeyPatch) -
     assert fit.used == tuple(sorted(reference.poses))
     dt, dr = pose_error(invert_rigid(fit.env_from_scan), scan.scan_from_env)
     assert dt < 0.001 and dr < 0.2
+
+
+def test_a_scan_too_dense_for_the_memory_allowed_fails_naming_the_way_out(tmp_path: Path) -> None:
+    points, colors = cloud(5000)
+    path = tmp_path / "dense.ply"
+    write_ply(path, points, colors)
+    options = ScanOptions(max_voxels=1000, chunk_points=1000)
+    with pytest.raises(ScanTooDense, match="coarser reconstruct voxel_size_m"):
+        scan_to_cloud(
+            ScanInput(path, "ply", frame(np.eye(4))), tmp_path / "out", VOXEL_M, None, options
+        )
+    result = scan_to_cloud(  # the same scan, 25 cm voxels: within the limit
+        ScanInput(path, "ply", frame(np.eye(4))), tmp_path / "out", 0.25, None, options
+    )
+    assert result.quality["points"] <= 1000

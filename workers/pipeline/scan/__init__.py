@@ -8,6 +8,7 @@ from workers.pipeline.scan.markers import NoUsableFrame, SheetFit, find_sheet, k
 from workers.pipeline.scan.options import PRESETS, ScanOptions, scan_options
 from workers.pipeline.scan.read import ScanChunk, ScanReadError, iter_scan
 from workers.pipeline.scan.stage import EmptyScan, ScanInput, ScanResult, scan_to_cloud
+from workers.pipeline.scan.voxels import ScanTooDense, VoxelGrid
 
 __all__ = [
     "PRESETS",
@@ -18,7 +19,9 @@ __all__ = [
     "ScanOptions",
     "ScanReadError",
     "ScanResult",
+    "ScanTooDense",
     "SheetFit",
+    "VoxelGrid",
     "find_sheet",
     "iter_scan",
     "kabsch",

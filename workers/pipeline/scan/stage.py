@@ -76,7 +76,7 @@ class ScanResult:
 
 
 def _read(scan: ScanInput, voxel_m: float, options: ScanOptions, progress: Progress) -> VoxelGrid:
-    grid = VoxelGrid(voxel_m)
+    grid = VoxelGrid(voxel_m, max_voxels=options.max_voxels)
     scale = scan.frame.metres_per_unit
     total = max(scan.points_declared, 1)
     progress("read", 0.0)

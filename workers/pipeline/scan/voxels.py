@@ -12,23 +12,36 @@ from workers.pipeline.geometry import as_points
 FloatArray = NDArray[np.float64]
 ColorArray = NDArray[np.uint8]
 
+
+class ScanTooDense(InputError):
+    """The scan, averaged on the voxel asked for, would not fit the memory allowed."""
+
+    code = "ScanTooDense"
+
+
 _BITS = 21  # per axis: ±2^20 voxels (±2.6 km at 2.5 mm)
 _OFFSET = 1 << (_BITS - 1)
 
 
 class VoxelGrid:
-    """Sums of points and colours per ``voxel_m`` cube (grid at the origin), merged every
-    ``merge_every`` pending voxels. Colours count only while every chunk has them."""
+    """Sums of points and colours per ``voxel_m`` cube (grid at the origin). Chunks' sums
+    are merged once the pending voxels outnumber ``merge_every`` and the voxels merged so
+    far (so each voxel is re-sorted O(log n) times, not once per chunk). Colours count only
+    while every chunk has them."""
 
-    def __init__(self, voxel_m: float, merge_every: int = 4_000_000) -> None:
+    def __init__(
+        self, voxel_m: float, merge_every: int = 4_000_000, max_voxels: int | None = None
+    ) -> None:
         if not (np.isfinite(voxel_m) and voxel_m > 0):
             raise InputError(f"voxel size must be > 0 metres, got {voxel_m}")
         self.voxel_m = float(voxel_m)
         self.merge_every = merge_every
+        self.max_voxels = max_voxels
         self.colored = True
         self.n_in = 0
         self._parts: list[tuple[NDArray[np.int64], FloatArray]] = []
         self._pending = 0
+        self._merged = 0
 
     def add(self, points_m: FloatArray, colors: ColorArray | None) -> None:
         """Add (N, 3) points in metres and their (N, 3) uint8 colours (or None)."""
@@ -65,7 +78,7 @@ class VoxelGrid:
         )
         self._parts.append((np.asarray(uniq, np.int64), np.asarray(sums, np.float64)))
         self._pending += len(uniq)
-        if self._pending > self.merge_every and len(self._parts) > 1:
+        if self._pending > max(self.merge_every, self._merged) and len(self._parts) > 1:
             self._merge()
 
     def _merge(self) -> None:
@@ -75,12 +88,20 @@ class VoxelGrid:
         self._pending = 0
         self._push(keys, values)
         self._pending = 0
+        self._merged = len(self._parts[0][0])
+        if self.max_voxels is not None and self._merged > self.max_voxels:
+            raise ScanTooDense(
+                f"the scan averages to more than {self.max_voxels} voxels of "
+                f"{self.voxel_m * 1000:g} mm (about {64 * self.max_voxels / 1e6:.0f} MB); "
+                "give the environment a coarser reconstruct voxel_size_m or crop the scan"
+            )
 
     def result(self) -> tuple[FloatArray, ColorArray | None]:
-        """((M, 3) mean points in metres, (M, 3) uint8 mean colours or None)."""
+        """((M, 3) mean points in metres, (M, 3) uint8 mean colours or None). Raises
+        ScanTooDense past ``max_voxels``."""
         if not self._parts:
             return np.zeros((0, 3)), None
-        if len(self._parts) > 1:
+        if len(self._parts) > 1 or self._merged == 0:
             self._merge()
         _, sums = self._parts[0]
         counts = sums[:, 6:7]

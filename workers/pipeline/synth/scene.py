@@ -83,7 +83,11 @@ def supports(room: RoomOptions) -> tuple[Support, ...]:
 
 @dataclass(frozen=True, eq=False)
 class Scenario:
-    """A before/after pair with its ground-truth changes (docs/contract.md change fields)."""
+    """A before/after pair with its ground-truth changes (docs/contract.md change fields).
+
+    ``models`` are the library classes; ``distractors`` the models outside it (their
+    placements are in ``after``); ``supports`` every surface objects stand on.
+    """
 
     name: str
     seed: int

@@ -26,6 +26,7 @@ from app.api.routes import (
     objects,
     scans,
     snapshots,
+    twin_objects,
     uploads,
     webhooks,
 )
@@ -127,7 +128,18 @@ def create_app() -> FastAPI:
     app.add_middleware(metrics_routes.MetricsMiddleware)
     app.include_router(health.router)
     app.include_router(metrics_routes.router)
-    routers = (keys, objects, environments, snapshots, scans, uploads, jobs, comparisons, webhooks)
+    routers = (
+        keys,
+        objects,
+        environments,
+        twin_objects,
+        snapshots,
+        scans,
+        uploads,
+        jobs,
+        comparisons,
+        webhooks,
+    )
     for module in routers:
         app.include_router(module.router, prefix="/v1")
     return app

@@ -13,7 +13,7 @@ import open3d as o3d
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core import comparisons, environments, events, jobs, objects, snapshots, twin
+from app.core import comparisons, environments, events, jobs, objects, snapshots, twin, twin_records
 from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, ObjectState
 from app.core.models import Change, SnapshotImage, utcnow
@@ -215,6 +215,9 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
         )
     jobs.get(session, ctx.job.id).result = {"stats": data.get("stats", {})}
     session.flush()
+    platform_ids = twin_records.external_ids(
+        session, (change.get("instance_id") for change in outcome.changes)
+    )
     events.record(
         session,
         EventType.comparison_completed,
@@ -227,17 +230,20 @@ def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> N
             "after": comparison.after_id,
             "changes": [
                 {
-                    key: change.get(key)
-                    for key in (
-                        "id",
-                        "type",
-                        "object",
-                        "instance_id",
-                        "pose",
-                        "previous_pose",
-                        "replaced_object",
-                        "pose_quality",
-                    )
+                    **{
+                        key: change.get(key)
+                        for key in (
+                            "id",
+                            "type",
+                            "object",
+                            "instance_id",
+                            "pose",
+                            "previous_pose",
+                            "replaced_object",
+                            "pose_quality",
+                        )
+                    },
+                    "external_id": platform_ids.get(str(change.get("instance_id"))),
                 }
                 for change in outcome.changes
             ],

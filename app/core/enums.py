@@ -86,6 +86,15 @@ class ChangeType(StrEnum):
     unidentified = "unidentified"
 
 
+class TwinEdit(StrEnum):
+    """A history record made through the API rather than by a comparison (its
+    ``change_type`` is then one of these, else a :class:`ChangeType`)."""
+
+    seeded = "seeded"  # created from the twin platform's own list (POST .../objects)
+    corrected = "corrected"  # pose, class or external id set by hand (PATCH)
+    retired = "retired"  # closed by hand (DELETE)
+
+
 class EventType(StrEnum):
     snapshot_reconstructed = "snapshot.reconstructed"
     comparison_completed = "comparison.completed"

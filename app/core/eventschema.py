@@ -69,6 +69,9 @@ def _common_defs() -> dict[str, Any]:
             type={"enum": [c.value for c in ChangeType]},
             object={"type": ["string", "null"], "description": "the object's class name"},
             instance_id=_nullable_id("the twin instance the change concerns"),
+            external_id=_nullable_id(
+                "the twin platform's id of that instance (seeded or corrected), when it has one"
+            ),
             pose={"anyOf": [{"$ref": "#/$defs/pose"}, {"type": "null"}]},
             previous_pose={
                 "anyOf": [{"$ref": "#/$defs/pose"}, {"type": "null"}],
@@ -129,6 +132,18 @@ def _data_defs() -> dict[str, Any]:
                 detail={"type": ["string", "null"]},
             ),
             links=_obj(["state", "snapshot"], state=_link(), snapshot=_link(), comparison=_link()),
+            instances={
+                "type": "array",
+                "description": "outcome applied: each instance the comparison's changes "
+                "touched, in the order the twin applied them",
+                "items": _obj(
+                    ["instance_id", "external_id", "change_type", "present"],
+                    instance_id=_id("the twin instance"),
+                    external_id=_nullable_id("the twin platform's id of it, when it has one"),
+                    change_type={"enum": [c.value for c in ChangeType]},
+                    present={"type": "boolean", "description": "false once it was removed"},
+                ),
+            },
         ),
         EventType.twin_blocked.value: _obj(
             ["environment", "snapshot", "seq", "comparison", "twin_seq", "error", "links"],

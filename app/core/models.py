@@ -289,9 +289,24 @@ class Change(Base):
 
 
 class TwinInstance(Base):
-    """One physical object instance in an environment's twin, open until removed."""
+    """One physical object instance in an environment's twin, open until removed.
+
+    ``external_id`` is the twin platform's own id of the object (set by seeding or a
+    correction), unique among an environment's open instances. An instance seeded before
+    the twin reflected any snapshot has no ``created_snapshot_id`` / ``since_snapshot_id``
+    (it stands from the start)."""
 
     __tablename__ = "twin_instances"
+    __table_args__ = (
+        Index(
+            "uq_twin_instances_open_external_id",
+            "environment_id",
+            "external_id",
+            unique=True,
+            postgresql_where=text("closed_snapshot_id IS NULL AND external_id IS NOT NULL"),
+            sqlite_where=text("closed_snapshot_id IS NULL AND external_id IS NOT NULL"),
+        ),
+    )
 
     id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
     environment_id: Mapped[str] = mapped_column(
@@ -304,8 +319,9 @@ class TwinInstance(Base):
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     pose_quality: Mapped[Json | None] = mapped_column(JSON)
     centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
-    since_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
-    created_snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
+    external_id: Mapped[str | None] = mapped_column(String(200))
+    since_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
+    created_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
     closed_snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
     closed_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
@@ -320,7 +336,8 @@ class InstancePose(Base):
     instance_id: Mapped[str] = mapped_column(
         ForeignKey("twin_instances.id", ondelete="CASCADE"), index=True
     )
-    snapshot_id: Mapped[str] = mapped_column(ForeignKey("snapshots.id"))
+    # None: a seed or correction made before the twin reflected any snapshot
+    snapshot_id: Mapped[str | None] = mapped_column(ForeignKey("snapshots.id"))
     comparison_id: Mapped[str | None] = mapped_column(ForeignKey("comparisons.id"))
     change_type: Mapped[str] = mapped_column(String(20))
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
@@ -405,6 +422,8 @@ class Delivery(Base):
     # rendered at fan-out (a JSON Patch list or a merge patch object). Both None for a
     # CloudEvents delivery, whose body is rendered from its event.
     instance_id: Mapped[str | None] = mapped_column(String(36))
+    # the platform's id of the twin an adapter body addresses (external id, else instance id)
+    twin_id: Mapped[str | None] = mapped_column(String(200))
     payload: Mapped[Json | None] = mapped_column(JSON)
 
 

@@ -28,7 +28,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any
 
-from sqlalchemy import or_, select
+from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session, aliased
 
 from app.core import comparisons, events
@@ -52,6 +52,7 @@ from app.core.models import (
     TwinInstance,
     utcnow,
 )
+from app.core.twin_records import changed_instances
 
 log = logging.getLogger(__name__)
 
@@ -293,6 +294,15 @@ def _settle(
         data["reason"] = reason
     if comparison is not None:
         data["links"]["comparison"] = f"/v1/comparisons/{comparison.id}"
+        data["instances"] = [
+            {
+                "instance_id": instance.id,
+                "external_id": instance.external_id,
+                "change_type": record.change_type,
+                "present": instance.closed_snapshot_id != head.id,
+            }
+            for record, instance in changed_instances(session, head.id, comparison.id)
+        ]
     events.record(
         session,
         EventType.twin_updated,
@@ -385,16 +395,18 @@ def state_at(
     session: Session, environment_id: str, seq: int
 ) -> list[tuple[TwinInstance, InstancePose]]:
     """The twin as it stood once snapshot number ``seq`` was applied: every instance open at
-    that time with its latest history record then (pose None when never estimated)."""
+    that time with its latest history record then (pose None when never estimated). A
+    record or instance that belongs to no snapshot (seeded before the twin reflected any,
+    :mod:`app.core.seeding`) counts as seq 0: it stands from the start."""
     created = aliased(Snapshot)
     closed = aliased(Snapshot)
     instances = session.scalars(
         select(TwinInstance)
-        .join(created, TwinInstance.created_snapshot_id == created.id)
+        .outerjoin(created, TwinInstance.created_snapshot_id == created.id)
         .outerjoin(closed, TwinInstance.closed_snapshot_id == closed.id)
         .where(
             TwinInstance.environment_id == environment_id,
-            created.seq <= seq,
+            or_(TwinInstance.created_snapshot_id.is_(None), created.seq <= seq),
             or_(closed.id.is_(None), closed.seq > seq),
         )
         .order_by(TwinInstance.created_at)
@@ -403,9 +415,12 @@ def state_at(
     for instance in instances:
         record = session.scalar(
             select(InstancePose)
-            .join(Snapshot, InstancePose.snapshot_id == Snapshot.id)
-            .where(InstancePose.instance_id == instance.id, Snapshot.seq <= seq)
-            .order_by(Snapshot.seq.desc(), InstancePose.created_at.desc())
+            .outerjoin(Snapshot, InstancePose.snapshot_id == Snapshot.id)
+            .where(
+                InstancePose.instance_id == instance.id,
+                or_(InstancePose.snapshot_id.is_(None), Snapshot.seq <= seq),
+            )
+            .order_by(func.coalesce(Snapshot.seq, 0).desc(), InstancePose.created_at.desc())
             .limit(1)
         )
         if record is not None:

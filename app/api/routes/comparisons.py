@@ -7,7 +7,7 @@ from fastapi import APIRouter, Response, status
 from app.api.deps import AdminKey, ReadKey, SessionDep
 from app.api.schemas.common import ERRORS, ErrorOut
 from app.api.schemas.comparisons import ComparisonRead
-from app.core import auth, comparisons
+from app.core import auth, comparisons, twin_records
 
 router = APIRouter(prefix="/comparisons", tags=["comparisons"], responses=ERRORS)
 
@@ -19,7 +19,9 @@ def get_comparison(comparison_id: str, session: SessionDep, key: ReadKey) -> Com
     auth.require_environment(
         key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
     )
-    return ComparisonRead.of(comparison)
+    return ComparisonRead.of(
+        comparison, twin_records.comparison_external_ids(session, [comparison])
+    )
 
 
 @router.post(

@@ -21,7 +21,15 @@ from app.api.schemas.environments import (
 )
 from app.api.schemas.exports import BINARY, GLB_MEDIA_TYPE, STATE_MEDIA_TYPES, StateFormat
 from app.api.schemas.snapshots import SnapshotRead
-from app.core import auth, comparisons, environments, retention, snapshots, twin
+from app.core import (
+    auth,
+    comparisons,
+    environments,
+    retention,
+    snapshots,
+    twin,
+    twin_records,
+)
 from app.core.export import twin_scene
 
 router = APIRouter(prefix="/environments", tags=["environments"], responses=ERRORS)
@@ -122,7 +130,9 @@ def list_comparisons(
     """Every comparison of the environment, newest first."""
     auth.require_environment(key, environment_id)
     environments.get(session, environment_id)
-    return [ComparisonRead.of(c) for c in comparisons.list_for(session, environment_id)]
+    found = comparisons.list_for(session, environment_id)
+    ext = twin_records.comparison_external_ids(session, found)
+    return [ComparisonRead.of(c, ext) for c in found]
 
 
 @router.get(
@@ -183,6 +193,7 @@ def get_state(
         objects=[
             InstanceRead(
                 instance_id=i.instance_id,
+                external_id=i.external_id,
                 object=i.object_name,
                 object_id=i.object_id,
                 pose=i.pose,
@@ -209,6 +220,7 @@ def get_instance_history(
     instance, poses = twin.history(session, environment_id, instance_id)
     return InstanceHistory(
         instance_id=instance.id,
+        external_id=instance.external_id,
         object=instance.object_name,
         created_snapshot=instance.created_snapshot_id,
         closed_snapshot=instance.closed_snapshot_id,

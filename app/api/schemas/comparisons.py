@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+from collections.abc import Mapping
 from datetime import datetime
 from typing import Any
 
@@ -26,10 +27,18 @@ class ChangeRead(Model):
     type: str
     object: str | None
     instance_id: str | None
+    external_id: str | None = Field(
+        default=None,
+        description="the twin platform's id of the instance the change matched (seeded or "
+        "corrected), when it has one",
+    )
     pose: Pose | None
     previous_pose: Pose | None
     replaced_object: str | None
     replaced_instance_id: str | None = None
+    replaced_external_id: str | None = Field(
+        default=None, description="swapped: the platform's id of the instance it replaced"
+    )
     centroid_env: list[float] | None = None
     identification: dict[str, Any] | None
     cluster: dict[str, Any] | None
@@ -57,7 +66,9 @@ class ComparisonRead(BaseModel):
     clusters: list[dict[str, Any]]
 
     @classmethod
-    def of(cls, c: Comparison) -> ComparisonRead:
+    def of(cls, c: Comparison, external_ids: Mapping[str, str] | None = None) -> ComparisonRead:
+        """``external_ids``: instance id → platform id (``twin_records.external_ids``)."""
+        ext = external_ids or {}
         return cls(
             id=c.id,
             environment=c.environment_id,
@@ -78,10 +89,12 @@ class ComparisonRead(BaseModel):
                     type=ch.type,
                     object=ch.object_name,
                     instance_id=ch.instance_id,
+                    external_id=ext.get(ch.instance_id or ""),
                     pose=ch.pose,
                     previous_pose=ch.previous_pose,
                     replaced_object=ch.replaced_object,
                     replaced_instance_id=ch.replaced_instance_id,
+                    replaced_external_id=ext.get(ch.replaced_instance_id or ""),
                     centroid_env=ch.centroid_env,
                     identification=ch.identification,
                     cluster=ch.cluster,

@@ -7,7 +7,7 @@ from pydantic import BaseModel, Field
 
 from app.api.schemas.common import Model, Pose
 from app.core.enums import TwinStatus
-from app.core.models import Environment
+from app.core.models import Environment, TwinInstance
 from app.core.twin import Progress
 
 
@@ -86,13 +86,69 @@ class EnvironmentRead(Model):
 
 class InstanceRead(BaseModel):
     instance_id: str
+    external_id: str | None = Field(
+        default=None, description="the twin platform's own id of the object, when it has one"
+    )
     object: str
     object_id: str | None
     pose: Pose | None
     pose_quality: dict[str, Any] | None
-    since_snapshot: str
-    created_snapshot: str
+    since_snapshot: str | None = Field(
+        description="the snapshot since which the pose holds (null: seeded or corrected "
+        "before the twin reflected any snapshot)"
+    )
+    created_snapshot: str | None = Field(
+        description="the snapshot the instance belongs to from its creation (null: seeded "
+        "before the twin reflected any snapshot; it stands from the start)"
+    )
     created_at: datetime
+
+    @classmethod
+    def of(cls, i: TwinInstance) -> InstanceRead:
+        return cls(
+            instance_id=i.id,
+            external_id=i.external_id,
+            object=i.object_name,
+            object_id=i.object_id,
+            pose=i.pose,
+            pose_quality=i.pose_quality,
+            since_snapshot=i.since_snapshot_id,
+            created_snapshot=i.created_snapshot_id,
+            created_at=i.created_at,
+        )
+
+
+class InstanceSeed(BaseModel):
+    """One instance the twin platform already knows."""
+
+    object: str = Field(
+        min_length=1,
+        max_length=200,
+        description="one of the environment's classes, by name or by its library object id",
+    )
+    pose: list[list[float]] = Field(
+        description="env_from_object: 4×4 row-major, metres, in the environment frame; a "
+        "finite rigid transform (rotation orthonormal within 1e-3, determinant +1, last row "
+        "0 0 0 1), stored with its rotation block made exactly orthonormal"
+    )
+    external_id: str | None = Field(
+        default=None,
+        max_length=200,
+        description="the platform's own id of the object: unique among the environment's "
+        "open instances; 1 to 200 characters, no control characters or surrounding spaces",
+    )
+
+
+class InstanceCorrection(BaseModel):
+    """What to correct on an instance: any of the three; a field left out is unchanged."""
+
+    object: str | None = Field(
+        default=None, min_length=1, max_length=200, description="a class name or library id"
+    )
+    pose: list[list[float]] | None = Field(default=None, description="as InstanceSeed.pose")
+    external_id: str | None = Field(
+        default=None, max_length=200, description="the platform's id; null clears it"
+    )
 
 
 class TwinStateRead(BaseModel):
@@ -110,16 +166,23 @@ class TwinStateRead(BaseModel):
 
 
 class PoseRecord(BaseModel):
-    snapshot: str
+    snapshot: str | None = Field(
+        description="the snapshot the record belongs to (null: made by hand before the twin "
+        "reflected any snapshot)"
+    )
     comparison: str | None
-    change_type: str
+    change_type: str = Field(
+        description="a comparison's change (added, removed, moved, swapped) or a change made "
+        "through the API: seeded, corrected, retired"
+    )
     pose: Pose | None
     at: datetime
 
 
 class InstanceHistory(BaseModel):
     instance_id: str
+    external_id: str | None = None
     object: str
-    created_snapshot: str
+    created_snapshot: str | None
     closed_snapshot: str | None
     poses: list[PoseRecord]

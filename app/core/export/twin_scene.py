@@ -50,16 +50,19 @@ def generator() -> str:
 @dataclass(frozen=True)
 class InstanceState:
     """One instance as the state shows it: ``pose`` env_from_object (4×4, metres) or None
-    when never estimated; ``since_snapshot`` the snapshot that gave it that pose."""
+    when never estimated; ``since_snapshot`` the snapshot that gave it that pose (None: a
+    seed or correction made before the twin reflected any snapshot); ``external_id`` the
+    twin platform's id of it, when it has one."""
 
     instance_id: str
     object_name: str
     object_id: str | None
     pose: list[list[float]] | None
     pose_quality: dict[str, Any] | None
-    since_snapshot: str
-    created_snapshot: str
+    since_snapshot: str | None
+    created_snapshot: str | None
     created_at: datetime
+    external_id: str | None = None
 
 
 @dataclass(frozen=True)
@@ -106,6 +109,7 @@ def view(session: Session, env: Environment, snapshot_id: str | None = None) -> 
             since_snapshot=record.snapshot_id,
             created_snapshot=instance.created_snapshot_id,
             created_at=instance.created_at,
+            external_id=instance.external_id,
         )
         for instance, record in twin.state_at(session, env.id, snap.seq)
     ]
@@ -122,6 +126,7 @@ def _current(i: TwinInstance) -> InstanceState:
         since_snapshot=i.since_snapshot_id,
         created_snapshot=i.created_snapshot_id,
         created_at=i.created_at,
+        external_id=i.external_id,
     )
 
 
@@ -149,6 +154,7 @@ def glb(session: Session, storage: LocalStorage, twin_view: TwinView) -> bytes:
     for row in twin_view.instances:
         extras: dict[str, Any] = {
             "instance_id": row.instance_id,
+            "external_id": row.external_id,
             "class": row.object_name,
             "object_id": row.object_id,
             "pose_quality": row.pose_quality,
@@ -170,7 +176,8 @@ def glb(session: Session, storage: LocalStorage, twin_view: TwinView) -> bytes:
         if key is None or key in missing:
             extras["model_missing"] = missing.get(key or "", "no library object of this class")
             key = None
-        nodes.append(SceneNode(f"{row.object_name}/{row.instance_id}", pose, key, extras))
+        name = f"{row.object_name}/{row.external_id or row.instance_id}"
+        nodes.append(SceneNode(name, pose, key, extras))
     root = {
         "environment": twin_view.environment_id,
         "snapshot": twin_view.snapshot_id,

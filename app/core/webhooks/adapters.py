@@ -8,8 +8,14 @@ body per changed instance of a ``twin.updated`` event whose comparison was appli
   same patch applies to an existing twin and, applied to an empty one, gives the complete
   twin a receiver creates (ADT cannot create a twin by PATCH).
 - ``eclipse-ditto``: a JSON merge patch (RFC 7396, ``application/merge-patch+json``) of a
-  Ditto thing (``thingId`` ``twindelta:<instance id>``, ``attributes``, ``features.pose``),
+  Ditto thing (``thingId`` ``twindelta:<twin id>``, ``attributes``, ``features.pose``),
   as ``PATCH /api/2/things/{thingId}`` takes it (Ditto 3.3+ creates a missing thing from it).
+
+The platform's twin is addressed by the instance's ``external_id`` (the platform's own id,
+set by seeding or a correction) when it has one, else by twindelta's instance id (fixed
+when the delivery is made: ``Delivery.twin_id``); the Ditto patch then also sets
+``attributes.externalId`` (the ADT twin's own id is the external id, so the DTDL interface is
+unchanged).
 
 A removed instance (``removed``, or the replaced one of ``swapped``) keeps its twin or thing
 with ``present: false``; its pose is left alone in ADT and the ``pose`` feature is deleted
@@ -24,12 +30,13 @@ from dataclasses import dataclass
 from datetime import datetime
 from enum import StrEnum
 from typing import Any
+from urllib.parse import quote
 
-from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.core.enums import EventType, TwinUpdate
 from app.core.models import Event, InstancePose, TwinInstance
+from app.core.twin_records import changed_instances
 from app.core.webhooks.payload import aware
 
 log = logging.getLogger(__name__)
@@ -74,6 +81,12 @@ class InstanceChange:
     seq: int
     comparison_id: str
     changed_at: datetime
+    external_id: str | None = None  # the twin platform's id, when the instance has one
+
+    @property
+    def twin_id(self) -> str:
+        """The platform's id of the twin: the external id, else the instance id."""
+        return self.external_id or self.instance_id
 
 
 def instance_changes(session: Session, event: Event) -> list[InstanceChange]:
@@ -86,31 +99,21 @@ def instance_changes(session: Session, event: Event) -> list[InstanceChange]:
     snapshot_id, comparison_id = data.get("snapshot"), data.get("comparison")
     if not snapshot_id or not comparison_id:
         return []
-    rows = session.execute(
-        select(InstancePose, TwinInstance)
-        .join(TwinInstance, TwinInstance.id == InstancePose.instance_id)
-        .where(
-            InstancePose.snapshot_id == snapshot_id,
-            InstancePose.comparison_id == comparison_id,
-        )
-        .order_by(InstancePose.created_at, InstancePose.id)
-    ).all()
-    latest: dict[str, tuple[InstancePose, TwinInstance]] = {}
-    for record, instance in rows:
-        latest.pop(instance.id, None)  # an instance named twice: its last record wins
-        latest[instance.id] = (record, instance)
     return [
-        _change(record, instance, event, int(data.get("seq") or 0))
-        for record, instance in latest.values()
+        _change(record, instance, event, str(snapshot_id), int(data.get("seq") or 0))
+        for record, instance in changed_instances(session, snapshot_id, comparison_id)
     ]
 
 
-def _change(record: InstancePose, instance: TwinInstance, event: Event, seq: int) -> InstanceChange:
-    present = instance.closed_snapshot_id != record.snapshot_id
+def _change(
+    record: InstancePose, instance: TwinInstance, event: Event, snapshot_id: str, seq: int
+) -> InstanceChange:
+    present = instance.closed_snapshot_id != snapshot_id
     quality = instance.pose_quality if present and isinstance(instance.pose_quality, dict) else {}
     verified = quality.get("verified")
     return InstanceChange(
         instance_id=instance.id,
+        external_id=instance.external_id,
         environment_id=instance.environment_id,
         object_class=instance.object_name,
         library_object_id=instance.object_id,
@@ -118,7 +121,7 @@ def _change(record: InstancePose, instance: TwinInstance, event: Event, seq: int
         present=present,
         pose=record.pose if present else None,
         pose_verified=verified if isinstance(verified, bool) else None,
-        snapshot_id=record.snapshot_id,
+        snapshot_id=snapshot_id,
         seq=seq,
         comparison_id=str(record.comparison_id),
         changed_at=event.created_at,
@@ -142,7 +145,7 @@ def _time(value: datetime) -> str:
 
 def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
     """The JSON Patch (RFC 6902) for Azure Digital Twins' Update DigitalTwin on twin
-    ``change.instance_id`` of model :data:`ADT_MODEL_ID`: ``add`` operations only (valid
+    ``change.twin_id`` of model :data:`ADT_MODEL_ID`: ``add`` operations only (valid
     whether the property is set yet or not). A removal sets ``present`` false and leaves
     the last pose."""
     values: dict[str, Any] = {
@@ -165,9 +168,14 @@ def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
     return [{"op": "add", "path": f"/{name}", "value": value} for name, value in values.items()]
 
 
-def ditto_thing_id(instance_id: str) -> str:
-    """The Ditto thing id of an instance: ``namespace:name`` (the name is the instance id)."""
-    return f"{DITTO_NAMESPACE}:{instance_id}"
+def ditto_thing_id(twin_id: str) -> str:
+    """The Ditto thing id of a twin id (:attr:`InstanceChange.twin_id`): ``namespace:name``,
+    the name the twin id percent-encoded (RFC 3986) where Ditto's name rules need it (``/``,
+    ``%``, a leading ``$``, spaces and non-ASCII characters); an instance id is unchanged."""
+    name = quote(twin_id, safe="!&'()*+,;=:@-._~$")
+    if name.startswith("$"):
+        name = "%24" + name[1:]
+    return f"{DITTO_NAMESPACE}:{name}"
 
 
 def ditto_merge_patch(change: InstanceChange) -> dict[str, Any]:
@@ -186,6 +194,8 @@ def ditto_merge_patch(change: InstanceChange) -> dict[str, Any]:
     }
     if change.library_object_id is not None:
         attributes["libraryObject"] = change.library_object_id
+    if change.external_id is not None:
+        attributes["externalId"] = change.external_id
     pose = pose_value(change.pose)
     feature: dict[str, Any] | None = None
     if pose is not None:
@@ -198,7 +208,7 @@ def ditto_merge_patch(change: InstanceChange) -> dict[str, Any]:
             properties["verified"] = change.pose_verified
         feature = {"properties": properties}
     patch: dict[str, Any] = {
-        "thingId": ditto_thing_id(change.instance_id),
+        "thingId": ditto_thing_id(change.twin_id),
         "attributes": attributes,
     }
     if feature is not None or not change.present:
@@ -215,9 +225,12 @@ def render(fmt: WebhookFormat, change: InstanceChange) -> Any:
     raise ValueError(f"format {fmt} has no per-instance body")
 
 
-def target_headers(fmt: WebhookFormat, event: Event, instance_id: str) -> dict[str, str]:
+def target_headers(
+    fmt: WebhookFormat, event: Event, instance_id: str, twin_id: str | None = None
+) -> dict[str, str]:
     """The headers that say what an adapter body is about: the platform's id of the twin
-    (``twindelta-twin-id`` for ADT, ``twindelta-thing-id`` for Ditto) and the CloudEvents
+    (:attr:`InstanceChange.twin_id`, the instance id when None: ``twindelta-twin-id`` for
+    ADT, ``twindelta-thing-id`` its :func:`ditto_thing_id` for Ditto) and the CloudEvents
     HTTP binary-mode attributes (``ce-*``; the body is the event's data)."""
     source = f"/twindelta/environments/{event.environment_id}"
     headers = {
@@ -229,9 +242,9 @@ def target_headers(fmt: WebhookFormat, event: Event, instance_id: str) -> dict[s
         "ce-time": _time(event.created_at),
     }
     if fmt == WebhookFormat.azure_digital_twins:
-        headers["twindelta-twin-id"] = instance_id
+        headers["twindelta-twin-id"] = twin_id or instance_id
     elif fmt == WebhookFormat.eclipse_ditto:
-        headers["twindelta-thing-id"] = ditto_thing_id(instance_id)
+        headers["twindelta-thing-id"] = ditto_thing_id(twin_id or instance_id)
     return headers
 
 

@@ -139,6 +139,7 @@ def claim(
             Delivery.event_id,
             Delivery.instance_id,
             Delivery.payload,
+            Delivery.twin_id,
         )
         .execution_options(synchronize_session=False)
     ).first()
@@ -150,7 +151,7 @@ def _prepare(
 ) -> Claim | None:
     """The claimed attempt's request (None, and the delivery failed, when its subscription
     is gone or deactivated)."""
-    claimed_id, attempt, run_attempt, subscription_id, event_id, instance_id, payload = row
+    claimed_id, attempt, run_attempt, subscription_id, event_id, instance_id, payload, twin_id = row
     sub = session.get(WebhookSubscription, subscription_id)
     event = session.get(Event, event_id)
     if sub is None or event is None or not sub.active:
@@ -176,7 +177,7 @@ def _prepare(
         fmt, doc = WebhookFormat.cloudevents, cloudevent(event)
     else:  # an adapter body, rendered at fan-out
         fmt, doc = WebhookFormat(sub.format), payload
-        headers = tuple(target_headers(fmt, event, instance_id).items())
+        headers = tuple(target_headers(fmt, event, instance_id, twin_id).items())
     return Claim(
         delivery_id=claimed_id,
         attempt=attempt,

@@ -49,13 +49,13 @@ def fan_out(session: Session, event: Event) -> int:
             continue
         fmt = WebhookFormat(sub.format)
         if fmt == WebhookFormat.cloudevents:
-            _add(session, sub, event, None, None)
+            _add(session, sub, event, None, None, None)
             count += 1
             continue
         if changes is None:
             changes = instance_changes(session, event)
         for change in changes:
-            _add(session, sub, event, change.instance_id, render(fmt, change))
+            _add(session, sub, event, change.instance_id, render(fmt, change), change.twin_id)
             count += 1
     return count
 
@@ -66,6 +66,7 @@ def _add(
     event: Event,
     instance_id: str | None,
     payload: Any,
+    twin_id: str | None,
 ) -> None:
     key = ordering_key(sub.id, event.environment_id)
     last = session.scalar(select(func.max(Delivery.seq)).where(Delivery.ordering_key == key))
@@ -81,6 +82,7 @@ def _add(
         next_attempt_at=now,
         dispatched_at=now,
         instance_id=instance_id,
+        twin_id=twin_id,
         payload=payload,
     )
     session.add(delivery)

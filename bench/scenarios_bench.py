@@ -1,7 +1,7 @@
 """Accuracy of the whole pipeline on generated YCB scenes with ground truth.
 
     python -m bench.scenarios_bench [--quick] [--scenarios moved,multiple] [--seed 1]
-    python -m bench.scenarios_bench --set tuning|test [--real-camera] [--quick]
+    python -m bench.scenarios_bench --set tuning|test [--real-camera] [--quick] [--worlds a,b]
 
 For each scenario the synth generator lays out YCB objects (Calli et al. 2015, CC BY 4.0;
 read from ../shared/data/ycb or $TWINDELTA_SHARED_DATA/ycb), renders both captures, and
@@ -646,10 +646,19 @@ def run_world(
 
 def run_world_set(args: argparse.Namespace) -> int:
     """``--set tuning|test``: every world of the set (and with ``--real-camera`` each one
-    again through a real camera), reported per variant with the set's name; writes
-    ``bench/results/scenarios_<set>.json`` unless ``--out`` says otherwise."""
+    again through a real camera), reported per variant with the set's name; ``--worlds``
+    keeps a subset (each world keeps the lens it has in the whole set); writes
+    ``bench/results/scenarios_<set>.json`` unless ``--out`` says otherwise. Returns 2 naming
+    an unknown world."""
     t_start = time.perf_counter()
     worlds = SETS[args.set]
+    if args.worlds:
+        wanted = args.worlds.split(",")
+        unknown = sorted(set(wanted) - {w.name for w in worlds})
+        if unknown:
+            print(f"unknown worlds of the {args.set} set: {', '.join(unknown)}", file=sys.stderr)
+            return 2
+        worlds = tuple(w for w in worlds if w.name in wanted)
     base, recon_preset = PRESETS["bench"], "default"
     if args.quick:
         base, recon_preset = replace(base, path=PathOptions(n_views=24)), "fast"
@@ -662,6 +671,7 @@ def run_world_set(args: argparse.Namespace) -> int:
         "set": args.set,
         "rule": TUNING_RULE,
         "quick": args.quick,
+        "worlds": [w.name for w in worlds],
         "objects": names,
         "synth": {
             "preset": "bench",
@@ -679,10 +689,10 @@ def run_world_set(args: argparse.Namespace) -> int:
     for variant, real in variants:
         runs: dict[str, Any] = {}
         report["variants"][variant] = {"scenarios": runs}
-        for index, world in enumerate(worlds):
+        for world in worlds:
             synth = world.options(base)
             if real:
-                synth = real_camera(synth, index)
+                synth = real_camera(synth, SETS[args.set].index(world))
             print(f"[scenarios:{args.set}:{variant}] {world.name} ...", flush=True)
             try:
                 runs[world.name] = run_world(args, world, synth, variant, ycb, models, recon_preset)
@@ -720,6 +730,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--real-camera", action="store_true", help="with --set: each world again, real camera"
     )
+    parser.add_argument(
+        "--worlds", help="with --set: a comma-separated subset of its worlds (default all)"
+    )
     args = parser.parse_args(argv)
     t_start = time.perf_counter()
     if not (ycb_dir() / OBJECTS[0] / "textured.obj").is_file():
@@ -727,8 +740,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.set is not None:
         return run_world_set(args)
-    if args.real_camera:
-        parser.error("--real-camera goes with --set")
+    if args.real_camera or args.worlds:
+        parser.error("--real-camera and --worlds go with --set")
     args.out = args.out or ROOT / "bench" / "results" / "scenarios.json"
     names = (
         args.scenarios.split(",")

@@ -12,7 +12,8 @@ import pytest
 
 from bench import scenarios_bench
 from bench.scenarios_bench import DISTRACTOR_REACH_M, score_distractors
-from bench.worlds import TEST
+from bench.worlds import TEST, real_camera
+from workers.pipeline.synth import PRESETS
 
 
 def _found(obj: str | None, xy: tuple[float, float], cluster: int) -> dict[str, Any]:
@@ -70,3 +71,34 @@ def test_set_report_names_the_set_and_its_variants(
     assert len(real) == len(ideal) == len(TEST)
     assert all(s.effects.active for s in real) and not any(s.effects.active for s in ideal)
     assert len({tag for _, _, tag in calls}) == 2 * len(TEST)
+
+
+def test_a_subset_of_worlds_keeps_each_worlds_lens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    synths: dict[str, Any] = {}  # "<set>_<world>_<variant>" → its generator options
+
+    def fake_run(
+        work: Path, scenario: str, seed: int, synth: Any, tag: str, *rest: Any
+    ) -> dict[str, Any]:
+        synths[tag.rsplit("_", 1)[0]] = synth
+        return {"ours": {"changes": [], "false_changes": [], "unidentified": 0}, "timings_s": {}}
+
+    monkeypatch.setattr(scenarios_bench, "run_scenario", fake_run)
+    monkeypatch.setattr(scenarios_bench, "prepared_models", lambda names: ({}, {}))
+    out = tmp_path / "subset.json"
+    wanted = ["box_swapped_for_bottle", "flat_removed"]
+    argv = ["--set", "test", "--real-camera", "--worlds", ",".join(wanted), "--out", str(out)]
+    assert scenarios_bench.main(argv) == 0
+    report = json.loads(out.read_text())
+    assert report["worlds"] == ["flat_removed", "box_swapped_for_bottle"]  # the set's order
+    for variant in report["variants"].values():
+        assert set(variant["scenarios"]) == set(wanted)
+    for name in wanted:
+        index = [w.name for w in TEST].index(name)
+        world = TEST[index]
+        expected = real_camera(world.options(PRESETS["bench"]), index)
+        assert synths[f"test_{name}_real_camera"].effects == expected.effects
+        assert not synths[f"test_{name}_ideal_camera"].effects.active
+    assert scenarios_bench.main(["--set", "test", "--worlds", "flat_removed,nope"]) == 2
+    assert "nope" in capsys.readouterr().err

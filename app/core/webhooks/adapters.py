@@ -170,8 +170,10 @@ def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
 
 def ditto_thing_id(twin_id: str) -> str:
     """The Ditto thing id of a twin id (:attr:`InstanceChange.twin_id`): ``namespace:name``,
-    the name the twin id percent-encoded (RFC 3986) where Ditto's name rules need it (``/``,
-    ``%``, a leading ``$``, spaces and non-ASCII characters); an instance id is unchanged."""
+    the name the twin id percent-encoded (RFC 3986, UTF-8) but for unreserved characters
+    and ``!&'()*+,;=:@$`` (a leading ``$`` too), so that it meets Ditto's name rules (no
+    ``/``, no control or non-ASCII characters) and reads the same in a URL path; an
+    instance id is unchanged."""
     name = quote(twin_id, safe="!&'()*+,;=:@-._~$")
     if name.startswith("$"):
         name = "%24" + name[1:]

@@ -83,12 +83,17 @@ def test_the_marker_sheet_in_a_coloured_scan_gives_the_frame(tmp_path: Path) -> 
     write_e57(
         path, [(points_scanner * 1000.0, scan.colors, mm @ common_from_scanner @ np.linalg.inv(mm))]
     )
+    calls: list[tuple[str, float]] = []
     result = scan_to_cloud(
         ScanInput(path, "e57", ScanFrame("markers", None, "mm"), len(scan.points_scan)),
         tmp_path / "out",
         VOXEL_M,
         parse_reference(scan.sheet.reference()),
+        progress=lambda stage, fraction: calls.append((stage, fraction)),
     )
+    marker_steps = [f for stage, f in calls if stage == "markers"]
+    assert calls[0][0] == "read" and calls[-1] == ("write", 1.0)
+    assert marker_steps == sorted(marker_steps) and len(set(marker_steps)) > 3  # per plane
     q = result.quality
     # the error where the sheet is: the environment's origin, and the rotation
     dt, dr = pose_error(invert_rigid(np.asarray(q["env_from_scan"])), scan.scan_from_env)

@@ -14,6 +14,7 @@ Corners follow the contract: a marker's corners sit at (−s/2, s/2, 0), (s/2, s
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -204,13 +205,18 @@ def _corners_on_plane(
 
 
 def find_sheet(
-    points_scan: FloatArray, colors: ColorArray, reference: MarkerReference, options: ScanOptions
+    points_scan: FloatArray,
+    colors: ColorArray,
+    reference: MarkerReference,
+    options: ScanOptions,
+    progress: Callable[[float], None] | None = None,
 ) -> SheetFit:
     """``env_from_scan`` from the marker sheet seen in a coloured scan.
 
     ``points_scan`` (N, 3) metres, ``colors`` (N, 3) uint8 RGB (or grey from intensity).
     A marker whose corners fit worse than ``max_marker_residual_m`` is dropped and the fit
-    redone. Raises NoUsableFrame when no marker of the sheet is found.
+    redone. ``progress`` gets the share of planes searched (0..1) after each plane. Raises
+    NoUsableFrame when no marker of the sheet is found.
     """
     pts = as_points(points_scan, "points_scan")
     if np.shape(colors) != pts.shape:
@@ -218,9 +224,11 @@ def find_sheet(
     grey = np.asarray(colors, np.float64) @ np.asarray([0.299, 0.587, 0.114])
     planes = _planes(pts, options)
     found: dict[int, FloatArray] = {}
-    for plane in planes:
+    for k, plane in enumerate(planes):
         for marker_id, corners in _corners_on_plane(pts, grey, plane, reference, options).items():
             found.setdefault(marker_id, corners)
+        if progress is not None:
+            progress((k + 1) / len(planes))
     if not found:
         raise NoUsableFrame(
             f"markers asked for, but none of the environment's {reference.dictionary} markers "

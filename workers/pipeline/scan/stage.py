@@ -125,8 +125,10 @@ def _marker_frame(
             "markers asked for, but the scan has neither colours nor intensity to see them in"
         )
     progress("markers", 0.0)
-    coarse = find_sheet(points, colors, reference, options)
-    progress("markers", 0.5)
+    coarse = find_sheet(
+        points, colors, reference, options, lambda share: progress("markers", 0.8 * share)
+    )
+    progress("markers", 0.8)
     radius = np.sqrt(0.5) * reference.size_m + 0.1  # the marker, its paper and 10 cm of floor
     near_pts, near_cols = _near_markers(scan, coarse.centres_scan(), radius, options)
     try:

@@ -15,6 +15,8 @@ and the chain never interleave. None commits.
 
 from __future__ import annotations
 
+import csv
+import io
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -91,6 +93,42 @@ def check_external_id(value: Any) -> str:
     if any(ord(c) < 0x20 or 0x7F <= ord(c) <= 0x9F for c in value) or value != value.strip():
         raise ValueError("external_id has control characters or surrounding whitespace")
     return value
+
+
+CSV_POSE_COLUMNS = tuple(f"m{r}{c}" for r in range(4) for c in range(4))
+
+
+def parse_csv(data: bytes) -> list[Seed]:
+    """The rows of a CSV import (UTF-8, optional BOM; a header row, then one instance per
+    row): columns ``object``, ``m00`` … ``m33`` (the pose, row-major, metres) and
+    optionally ``external_id`` (an empty cell: none); other columns are ignored. Raises
+    InvalidInput naming the header's problem, or every row whose cells are not numbers
+    (rows numbered from 0, the first after the header; blank lines skipped)."""
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InvalidInput(f"the CSV is not UTF-8 (byte {exc.start})") from exc
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    header = reader.fieldnames or []
+    missing = [name for name in ("object", *CSV_POSE_COLUMNS) if name not in header]
+    if missing:
+        raise InvalidInput(f"the CSV header lacks {', '.join(missing)} (got {header})")
+    rows: list[Seed] = []
+    problems: list[str] = []
+    try:
+        for i, cells in enumerate(reader):
+            try:
+                pose = [[float(cells[f"m{r}{c}"] or "") for c in range(4)] for r in range(4)]
+            except (TypeError, ValueError):
+                problems.append(f"row {i} (line {reader.line_num}): a pose cell is not a number")
+                continue
+            ext = cells.get("external_id") or None
+            rows.append(Seed(object=str(cells["object"] or ""), pose=pose, external_id=ext))
+    except csv.Error as exc:
+        raise InvalidInput(f"the CSV cannot be read at line {reader.line_num}: {exc}") from exc
+    if problems:
+        raise InvalidInput("nothing was written: " + "; ".join(problems[:MAX_PROBLEMS]))
+    return rows
 
 
 def _lock(session: Session, environment_id: str) -> Environment:

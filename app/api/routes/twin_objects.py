@@ -6,13 +6,14 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Response, status
+from fastapi import APIRouter, Depends, Request, Response, status
+from pydantic import TypeAdapter, ValidationError
 
 from app.api.deps import AdminKey, SessionDep
 from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut, conflict
 from app.api.schemas.environments import InstanceCorrection, InstanceRead, InstanceSeed
 from app.core import auth, seeding
-from app.core.errors import InvalidInput
+from app.core.errors import InvalidInput, UnsupportedMedia
 
 router = APIRouter(prefix="/environments", tags=["twin"], responses=ERRORS)
 
@@ -45,21 +46,82 @@ def create_instance(
     return InstanceRead.of(instance)
 
 
+_ROWS = TypeAdapter(list[InstanceSeed])
+
+
+async def import_rows(request: Request) -> list[seeding.Seed]:
+    """The rows of an import: a JSON list of :class:`InstanceSeed` or, with ``Content-Type:
+    text/csv``, :func:`app.core.seeding.parse_csv`'s CSV; 1 to :data:`MAX_IMPORT_ROWS`."""
+    kind = request.headers.get("content-type", "application/json").split(";")[0].strip()
+    body = await request.body()
+    if kind == "text/csv":
+        rows = seeding.parse_csv(body)
+    elif kind == "application/json":
+        try:
+            rows = [_seed(row) for row in _ROWS.validate_json(body)]
+        except ValidationError as exc:
+            raise InvalidInput(_validation_detail(exc)) from exc
+    else:
+        raise UnsupportedMedia(f"send application/json or text/csv, not {kind}")
+    if not 1 <= len(rows) <= MAX_IMPORT_ROWS:
+        raise InvalidInput(f"an import holds 1 to {MAX_IMPORT_ROWS} rows, not {len(rows)}")
+    return rows
+
+
+def _validation_detail(exc: ValidationError) -> str:
+    """Pydantic's errors named as the import's other 422s: ``row 7: pose: <message>``."""
+    parts = []
+    for err in exc.errors()[: seeding.MAX_PROBLEMS]:
+        loc = list(err.get("loc", ()))
+        row = f"row {loc.pop(0)}: " if loc and isinstance(loc[0], int) else ""
+        where = ".".join(str(p) for p in loc)
+        parts.append(f"{row}{where}: {err.get('msg')}" if where else f"{row}{err.get('msg')}")
+    return "nothing was written: " + "; ".join(parts)
+
+
+_IMPORT_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "application/json": {
+                "schema": {
+                    "type": "array",
+                    "items": {"$ref": "#/components/schemas/InstanceSeed"},
+                    "minItems": 1,
+                    "maxItems": MAX_IMPORT_ROWS,
+                }
+            },
+            "text/csv": {
+                "schema": {"type": "string"},
+                "example": "object,external_id,m00,m01,m02,m03,m10,m11,m12,m13,m20,m21,m22,"
+                "m23,m30,m31,m32,m33\nmug,urn:cell-2:mug-3,1,0,0,0.4,0,1,0,1.1,0,0,1,0.8,0,0,0,1\n",
+            },
+        },
+    }
+}
+
+
 @router.post(
     "/{environment_id}/objects/import",
     status_code=status.HTTP_201_CREATED,
-    responses={**TOO_LARGE, **_REFUSED},
+    openapi_extra=_IMPORT_BODY,
+    responses={
+        **TOO_LARGE,
+        **_REFUSED,
+        415: {"model": ErrorOut, "description": "neither application/json nor text/csv"},
+    },
 )
 def import_instances(
     environment_id: str,
-    body: Annotated[list[InstanceSeed], Body(min_length=1, max_length=MAX_IMPORT_ROWS)],
     session: SessionDep,
     key: AdminKey,
+    rows: Annotated[list[seeding.Seed], Depends(import_rows)],
 ) -> list[InstanceRead]:
-    """Add many instances at once, all or nothing: a bad row is a 422 naming its index (from
-    0) and nothing is written."""
+    """Add many instances at once (a JSON list, or CSV with columns object, external_id,
+    m00..m33), all or nothing: a bad row is a 422 naming its index (from 0) and nothing is
+    written."""
     auth.require_environment(key, environment_id)
-    created = seeding.seed(session, environment_id, [_seed(row) for row in body])
+    created = seeding.seed(session, environment_id, rows)
     return [InstanceRead.of(i) for i in created]
 
 

@@ -14,7 +14,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import webhooks
+from app.core import seeding, webhooks
 from app.core.eventschema import event_schema
 from app.core.models import Event, LibraryObject
 from app.core.webhooks.payload import cloudevent
@@ -213,7 +213,7 @@ def ten_rows() -> list[dict[str, Any]]:
             "row 7: pose is not rigid",
         ),
         ({"object": "mug", "pose": [[1.0, 0, 0, 0], [0, 1, 0, 0]]}, "row 7: pose must be a 4×4"),
-        ({"object": "mug", "pose": "identity"}, "7.pose: Input should be a valid list"),
+        ({"object": "mug", "pose": "identity"}, "row 7: pose: Input should be a valid array"),
         ({"object": "mug", "pose": pose_at(0), "external_id": "mug-3"}, "row 7: external_id"),
         ({"object": "mug", "pose": pose_at(0), "external_id": "held"}, "held by open instance"),
     ],
@@ -274,3 +274,67 @@ def test_ditto_thing_ids_of_any_external_id_are_valid_ditto_ids(
     got = webhooks.ditto_thing_id(twin_id)
     assert got == thing_id
     jsonschema.validate(got, THING_SCHEMA["properties"]["thingId"])
+
+
+def csv_body(rows: list[dict[str, Any]], bom: bool = False) -> bytes:
+    """``rows`` as a CSV import with an extra ``note`` column the import ignores."""
+    columns = ["object", "external_id", *seeding.CSV_POSE_COLUMNS, "note"]
+    lines = [",".join(columns)]
+    for row in rows:
+        cells = [str(v) for line in row["pose"] for v in line]
+        lines.append(",".join([row["object"], row.get("external_id") or "", *cells, "x"]))
+    text = "\r\n".join(lines) + "\r\n"
+    return (b"\xef\xbb\xbf" if bom else b"") + text.encode()
+
+
+def post_csv(client: TestClient, keys: Keys, env_id: str, body: bytes) -> Any:
+    return client.post(
+        objects_url(env_id, "/import"),
+        content=body,
+        headers={**keys.headers(), "Content-Type": "text/csv; charset=utf-8"},
+    )
+
+
+def test_a_csv_import_is_the_same_rows_and_refusals(client: TestClient, keys: Keys) -> None:
+    env_id = make_env(client, keys)
+    rows = ten_rows()
+    rows[4]["external_id"] = None
+    r = post_csv(client, keys, env_id, csv_body(rows, bom=True))
+    assert r.status_code == 201, r.text
+    got = [(o["object"], o["external_id"], o["pose"]) for o in r.json()]
+    assert got == [(row["object"], row["external_id"], row["pose"]) for row in rows]
+
+    other = make_env_named(client, keys, "cell-8")
+    bad = ten_rows()
+    bad[7]["object"] = "hammer"
+    r = post_csv(client, keys, other, csv_body(bad))
+    assert r.status_code == 422 and "row 7: unknown class 'hammer'" in r.json()["detail"]
+    text = csv_body(ten_rows()).decode().replace("0.7000000000000001", "seven", 1)
+    r = post_csv(client, keys, other, text.encode())
+    assert r.status_code == 422, r.text
+    assert "row 7 (line 9): a pose cell is not a number" in r.json()["detail"]
+    r = post_csv(client, keys, other, b"object,m00\nmug,1\n")
+    assert r.status_code == 422 and "header lacks m01" in r.json()["detail"]
+    r = post_csv(client, keys, other, b"object,\xff\n")
+    assert r.status_code == 422 and "not UTF-8" in r.json()["detail"]
+    r = post_csv(client, keys, other, csv_body([]))
+    assert r.status_code == 422 and "1 to 10000 rows" in r.json()["detail"]
+    r = client.post(
+        objects_url(other, "/import"),
+        content=b"<rows/>",
+        headers={**keys.headers(), "Content-Type": "application/xml"},
+    )
+    assert r.status_code == 415
+    state = client.get(f"/v1/environments/{other}/state", headers=keys.headers("read")).json()
+    assert state["objects"] == []
+
+
+def make_env_named(client: TestClient, keys: Keys, name: str) -> str:
+    r = client.post(
+        "/v1/environments",
+        json={"name": name, "classes": ["drill", "bowl", "mug"]},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 201, r.text
+    env_id: str = r.json()["id"]
+    return env_id

@@ -290,32 +290,36 @@ def correct(
     environment_id: str,
     instance_id: str,
     *,
-    object: Any = _UNSET,
+    object_class: Any = _UNSET,
     pose: Any = _UNSET,
     external_id: Any = _UNSET,
 ) -> TwinInstance:
-    """Set an open instance's class, pose and/or external id (None clears it) and add a
-    ``corrected`` history record with the pose it then has. A new pose holds from the
-    snapshot the twin reflects. Raises NotFound, Conflict (InstanceClosed: it was removed)
-    and InvalidInput naming the field (unknown class, bad pose, an external id another open
-    instance holds)."""
+    """Set an open instance's class (``object_class``: a class name or library object id),
+    pose and/or external id (None clears it), all or none, and add a ``corrected`` history
+    record with the pose it then has. A new pose holds from the snapshot the twin reflects.
+    Raises NotFound, Conflict (InstanceClosed: it was removed) and InvalidInput naming the
+    field (unknown class, bad pose, an external id another open instance holds)."""
     env = _lock(session, environment_id)
     instance = _open_instance(session, environment_id, instance_id)
     try:
-        if object is not _UNSET:
-            instance.object_name, instance.object_id = _Classes(session, env).resolve(object)
+        if object_class is not _UNSET:
+            object_class = _Classes(session, env).resolve(object_class)
         if pose is not _UNSET:
-            instance.pose = check_pose(pose)
-            instance.pose_quality, instance.centroid_env = None, None
-            instance.since_snapshot_id = env.twin_snapshot_id
-        if external_id is not _UNSET:
-            ext = None if external_id is None else check_external_id(external_id)
-            holder = _open_external_ids(session, environment_id).get(ext) if ext else None
+            pose = check_pose(pose)
+        if external_id is not _UNSET and external_id is not None:
+            external_id = check_external_id(external_id)
+            holder = _open_external_ids(session, environment_id).get(external_id)
             if holder is not None and holder != instance.id:
-                raise ValueError(f"external_id {ext!r} is held by open instance {holder}")
-            instance.external_id = ext
+                raise ValueError(f"external_id {external_id!r} is held by open instance {holder}")
     except ValueError as exc:
         raise InvalidInput(f"instance {instance_id}: nothing was changed: {exc}") from exc
+    if object_class is not _UNSET:
+        instance.object_name, instance.object_id = object_class
+    if pose is not _UNSET:
+        instance.pose, instance.pose_quality, instance.centroid_env = pose, None, None
+        instance.since_snapshot_id = env.twin_snapshot_id
+    if external_id is not _UNSET:
+        instance.external_id = external_id
     _record(session, instance, env.twin_snapshot_id, TwinEdit.corrected)
     session.flush()
     return instance

@@ -152,12 +152,12 @@ def correct_instance(
         raise InvalidInput("give at least one of object, pose, external_id")
     if ("object" in given and body.object is None) or ("pose" in given and body.pose is None):
         raise InvalidInput("object and pose cannot be null (leave them out to keep them)")
-    fields = {name: getattr(body, name) for name in ("object", "pose", "external_id")}
+    fields = {"object": "object_class", "pose": "pose", "external_id": "external_id"}
     instance = seeding.correct(
         session,
         environment_id,
         instance_id,
-        **{name: value for name, value in fields.items() if name in given},
+        **{arg: getattr(body, name) for name, arg in fields.items() if name in given},
     )
     return InstanceRead.of(instance)
 

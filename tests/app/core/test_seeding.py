@@ -204,7 +204,7 @@ def test_a_correction_sets_pose_class_and_external_id_on_the_record(
     )
     seeding.correct(session, chain.env_id, drill.id, pose=pose_at(0.15), external_id="D-2")
     assert (drill.pose, drill.external_id) == (pose_at(0.15), "D-2")
-    seeding.correct(session, chain.env_id, mug.id, object="bowl", external_id=None)
+    seeding.correct(session, chain.env_id, mug.id, object_class="bowl", external_id=None)
     assert (mug.object_name, mug.external_id) == ("bowl", None)
     _, poses = twin.history(session, chain.env_id, drill.id)
     assert [(p.change_type, p.pose) for p in poses] == [
@@ -221,10 +221,16 @@ def test_a_correction_sets_pose_class_and_external_id_on_the_record(
     with pytest.raises(InvalidInput, match=f"is held by open instance {drill.id}"):
         seeding.correct(session, chain.env_id, mug.id, external_id="D-2")
     with pytest.raises(InvalidInput, match="unknown class 'saw'"):
-        seeding.correct(session, chain.env_id, mug.id, object="saw")
+        seeding.correct(session, chain.env_id, mug.id, object_class="saw")
     with pytest.raises(InvalidInput, match="not orthonormal"):
-        seeding.correct(session, chain.env_id, mug.id, pose=[[2.0, 0, 0, 0], *pose_at(0)[1:]])
-    assert mug.object_name == "bowl"  # a refused correction changed nothing
+        seeding.correct(
+            session,
+            chain.env_id,
+            mug.id,
+            object_class="drill",
+            pose=[[2.0, 0, 0, 0], *pose_at(0)[1:]],
+        )
+    assert (mug.object_name, mug.pose) == ("bowl", pose_at(0.5))  # refused: all unchanged
     with pytest.raises(NotFound):
         seeding.correct(session, "nope", drill.id, external_id="x")
 

@@ -243,13 +243,16 @@ def _state_table(state: dict[str, Any]) -> str:
     rows = [
         f"twin at snapshot {twin.get('snapshot')} (seq {twin.get('seq')}, {twin.get('status')})"
     ]
-    rows.append(f"{'object':<20} {'x m':>8} {'y m':>8} {'z m':>8}  since snapshot  instance")
+    rows.append(
+        f"{'object':<20} {'x m':>8} {'y m':>8} {'z m':>8}  since snapshot  instance  external id"
+    )
     for obj in state.get("objects", []):
         pose = obj.get("pose")
         xyz = [f"{pose[i][3]:8.3f}" for i in range(3)] if pose else ["       -"] * 3
+        since = obj.get("since_snapshot") or "-"  # none: seeded before any snapshot
         rows.append(
-            f"{obj['object']:<20} {' '.join(xyz)}  {obj['since_snapshot']:<14}  "
-            f"{obj['instance_id']}"
+            f"{obj['object']:<20} {' '.join(xyz)}  {since:<14}  "
+            f"{obj['instance_id']}  {obj.get('external_id') or '-'}"
         )
     if not state.get("objects"):
         rows.append("(no objects)")

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from sqlalchemy import func, select
+from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from app.core import seeding, twin
@@ -268,3 +269,27 @@ def test_retiring_closes_at_the_reflected_snapshot_or_deletes_a_seed_never_appli
 def test_check_pose_names_the_problem(value: Any, problem: str) -> None:
     with pytest.raises(ValueError, match=problem):
         seeding.check_pose(value)
+
+
+def test_the_database_holds_one_open_instance_per_external_id(
+    session: Session, chain: Chain
+) -> None:
+    """The partial unique index behind the checks above (PostgreSQL and SQLite)."""
+
+    def add(external_id: str | None, closed: str | None = None) -> None:
+        session.add(
+            TwinInstance(
+                environment_id=chain.env_id,
+                object_name="drill",
+                external_id=external_id,
+                closed_snapshot_id=closed,
+            )
+        )
+        session.flush()
+
+    add("X", closed=chain.snapshot_ids[0])
+    add("X")  # a closed one does not count
+    add(None)
+    add(None)  # nor does having none
+    with pytest.raises(IntegrityError), session.begin_nested():
+        add("X")

@@ -50,6 +50,7 @@ from app.core.models import (
     Job,
     Snapshot,
     TwinInstance,
+    new_id,
     utcnow,
 )
 from app.core.twin_records import changed_instances
@@ -487,8 +488,14 @@ def apply_changes(
             close(change.get("instance_id"), ChangeType.removed)
         elif kind == ChangeType.moved:
             instance = session.get(TwinInstance, change.get("instance_id") or "")
-            if instance is None or instance.closed_snapshot_id is not None:
+            if instance is None:
                 create({**change, "type": ChangeType.added})
+                continue
+            if instance.closed_snapshot_id is not None:
+                # closed meanwhile (retired by hand while this comparison ran): the object
+                # is there, as a new instance (the closed one keeps its id and history)
+                log.warning("moved names closed instance %s: added anew", instance.id)
+                create({**change, "type": ChangeType.added, "instance_id": new_id()})
                 continue
             instance.pose, instance.pose_quality = change.get("pose"), change.get("pose_quality")
             instance.centroid_env = change.get("centroid_env")

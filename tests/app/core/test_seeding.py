@@ -293,3 +293,17 @@ def test_the_database_holds_one_open_instance_per_external_id(
     add(None)  # nor does having none
     with pytest.raises(IntegrityError), session.begin_nested():
         add("X")
+
+
+def test_a_move_of_an_instance_retired_meanwhile_adds_it_anew(
+    session: Session, chain: Chain
+) -> None:
+    """A comparison that read the instance open, applied after it was retired by hand."""
+    reflect_baseline(session, chain)
+    (drill,) = seeding.seed(session, chain.env_id, [seeding.Seed("drill", pose_at(0.1), "D")])
+    seeding.retire(session, chain.env_id, drill.id)
+    apply(session, chain, 2, [change(ChangeType.moved, "drill", drill.id, pose=pose_at(0.3))])
+    [now] = twin.current(session, chain.env_id)
+    assert now.id != drill.id and (now.pose, now.external_id) == (pose_at(0.3), None)
+    _, poses = twin.history(session, chain.env_id, drill.id)
+    assert [p.change_type for p in poses] == ["seeded", "retired"]

@@ -323,8 +323,24 @@ def state_command(args: argparse.Namespace) -> int:
     return 0
 
 
+def seed_command(args: argparse.Namespace) -> int:
+    """``twindelta seed FILE --env NAME``: import the twin platform's objects (a ``.csv``,
+    else a JSON list; README "Seeding the twin"), all or nothing; prints what was made."""
+    kind = "text/csv" if args.file.suffix.lower() == ".csv" else "application/json"
+    body = args.file.read_bytes()
+    with _client(args) as client:
+        made = client.import_objects(client.environment(args.env)["id"], body, kind)
+    if args.json:
+        print(json.dumps(made, indent=2))
+        return 0
+    print(f"seeded {len(made)} instance(s)")
+    for obj in made:
+        print(f"{obj['object']:<20} {obj['instance_id']}  {obj.get('external_id') or '-'}")
+    return 0
+
+
 def _station_parsers(sub: Any) -> None:
-    """``upload``, ``changes``, ``state``: a capture station's commands over HTTP."""
+    """``upload``, ``changes``, ``state``, ``seed``: the commands over HTTP."""
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--env", required=True, help="environment name or id")
     common.add_argument("--url", default=os.environ.get("TWINDELTA_URL", "http://127.0.0.1:8000"))
@@ -343,9 +359,18 @@ def _station_parsers(sub: Any) -> None:
     p_up.add_argument("--quiet", action="store_true", help="no progress bars")
     sub.add_parser("changes", parents=[common], help="the newest comparison's changes")
     sub.add_parser("state", parents=[common], help="the twin's objects and their poses")
+    p_seed = sub.add_parser(
+        "seed", parents=[common], help="seed the twin with the platform's objects (admin key)"
+    )
+    p_seed.add_argument("file", type=Path, help="a .csv (object, external_id, m00..m33) or JSON")
 
 
-STATION_COMMANDS = {"upload": upload_command, "changes": changes_command, "state": state_command}
+STATION_COMMANDS = {
+    "upload": upload_command,
+    "changes": changes_command,
+    "state": state_command,
+    "seed": seed_command,
+}
 
 
 def openapi_json() -> str:

@@ -380,6 +380,22 @@ class Client:
         found: list[dict[str, Any]] = self.get(f"/v1/environments/{environment_id}/comparisons")
         return found
 
+    def import_objects(
+        self, environment_id: str, body: bytes, content_type: str = "application/json"
+    ) -> list[dict[str, Any]]:
+        """Seed the twin with the platform's objects: ``body`` a JSON list or a CSV
+        (``text/csv``), all or nothing; the instances made. Sent once, never retried (a
+        retry after a lost answer could seed twice); ApiError (422) names the bad rows."""
+        path = f"/v1/environments/{environment_id}/objects/import"
+        try:
+            response = self.http.post(path, content=body, headers={"Content-Type": content_type})
+        except httpx.TransportError as exc:
+            raise ApiError(0, type(exc).__name__, str(exc), f"POST {path}") from exc
+        if response.status_code != 201:
+            raise ApiError.of(response)
+        made: list[dict[str, Any]] = response.json()
+        return made
+
     def state(self, environment_id: str) -> dict[str, Any]:
         """The twin as it stands: ``objects`` (instances with poses) and ``twin``."""
         found: dict[str, Any] = self.get(f"/v1/environments/{environment_id}/state")

@@ -234,6 +234,26 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]) ->
     return rep
 
 
+FAKE_PIPELINE = "tests.e2e.fake_pipeline_plugin"  # a worker's --include: the pipeline faked
+
+
+def worker_ready(log: Path) -> bool:
+    """Whether a Celery worker's log says it takes tasks."""
+    return log.exists() and " ready." in log.read_text(errors="replace")
+
+
+def fake_pipeline_service(procs: Processes, worker: str = "cpu") -> httpx.Client:
+    """Start the API and one cpu-queue worker running the fake pipeline; an admin client
+    once the API answers and the worker is ready (raises TimeoutError after 120 s)."""
+    port = free_port()
+    procs.api(port)
+    procs.worker(worker, "cpu", "--include", FAKE_PIPELINE)
+    client = api_client(port)
+    log = procs.logs / f"{worker}.log"
+    wait_until(lambda: worker_ready(log), 120, f"worker {worker}")
+    return client
+
+
 def api_client(port: int) -> httpx.Client:
     client = httpx.Client(
         base_url=f"http://127.0.0.1:{port}",

@@ -24,16 +24,14 @@ from tests.app.core.export.validator import assert_valid
 from tests.e2e.conftest import (
     Processes,
     RedisServer,
-    api_client,
-    free_port,
+    fake_pipeline_service,
     poll_job,
     wait_until,
 )
-from tests.e2e.test_twin_order import png, worker_ready
+from tests.e2e.test_twin_order import png
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
-PLUGIN = "tests.e2e.fake_pipeline_plugin"
 CLASSES = ["drill", "scan"]
 # class → the fake pose's x (metres): the scan comes with snapshot 2 and goes with 3
 SCENES: list[dict[str, float]] = [{"drill": 0.2}, {"drill": 0.3, "scan": 0.6}, {"drill": 0.5}]
@@ -100,11 +98,7 @@ def test_the_twin_as_glb_now_and_then_and_a_cloud_as_laz(
     processes: Callable[..., Processes],
 ) -> None:
     procs = processes(database_url=pg_url, broker_url=redis_server.url)
-    port = free_port()
-    procs.api(port)
-    procs.worker("cpu", "cpu", "--include", PLUGIN)
-    client = api_client(port)
-    wait_until(lambda: worker_ready(tmp_path / "cpu.log"), 120, "the worker")
+    client = fake_pipeline_service(procs)
     files = library_files(tmp_path)
     for name, data in files.items():
         r = client.post(

@@ -29,17 +29,18 @@ from tests.app.conftest import migrate
 from tests.conftest import REPO_ROOT
 from tests.e2e.conftest import (
     ADMIN_KEY,
+    FAKE_PIPELINE,
     Processes,
     api_client,
     free_port,
     poll_job,
     service_env,
     wait_until,
+    worker_ready,
 )
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e]
 
-PLUGIN = "tests.e2e.fake_pipeline_plugin"
 CLASSES = ["drill", "bowl", "mug"]
 UPLOAD_MB = 200
 
@@ -77,11 +78,11 @@ def service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Service]:
     procs = Processes(env=service_env(data), logs=root)
     port = free_port()
     procs.api(port)
-    procs.worker("cpu", "cpu", "--include", PLUGIN)
+    procs.worker("cpu", "cpu", "--include", FAKE_PIPELINE)
     try:
         http = api_client(port)
         log = root / "cpu.log"
-        wait_until(lambda: " ready." in log.read_text(errors="replace"), 120, "the cpu worker")
+        wait_until(lambda: worker_ready(log), 120, "the cpu worker")
         yield Service(port=port, http=http, data_dir=data)
     except BaseException:
         print(procs.log_tail())

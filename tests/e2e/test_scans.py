@@ -17,8 +17,16 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, poll_job, wait_until
-from tests.e2e.test_twin_order import PLUGIN, upload, worker_ready
+from tests.e2e.conftest import (
+    Processes,
+    RedisServer,
+    api_client,
+    fake_pipeline_service,
+    free_port,
+    poll_job,
+    wait_until,
+)
+from tests.e2e.test_twin_order import upload
 from tests.workers.pipeline.scan_scene import cloud, write_las
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
@@ -42,11 +50,7 @@ def test_a_scan_is_the_baseline_a_photo_snapshot_is_compared_with(
     processes: Callable[..., Processes],
 ) -> None:
     procs = processes(database_url=pg_url, broker_url=redis_server.url)
-    port = free_port()
-    procs.api(port)
-    procs.worker("cpu", "cpu", "--include", PLUGIN)
-    client = api_client(port)
-    wait_until(lambda: worker_ready(tmp_path / "cpu.log"), 120, "the worker")
+    client = fake_pipeline_service(procs)
     r = client.post(
         "/v1/environments", json={"name": "plant", "classes": CLASSES, "reference": SHEET}
     )

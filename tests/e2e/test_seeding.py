@@ -10,8 +10,13 @@ from pathlib import Path
 
 import pytest
 
-from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, wait_until
-from tests.e2e.test_twin_order import CLASSES, PLUGIN, upload, worker_ready
+from tests.e2e.conftest import (
+    Processes,
+    RedisServer,
+    fake_pipeline_service,
+    wait_until,
+)
+from tests.e2e.test_twin_order import CLASSES, upload
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
@@ -35,11 +40,7 @@ def test_seeded_instances_follow_the_captures_through_the_service(
     processes: Callable[..., Processes],
 ) -> None:
     procs = processes(database_url=pg_url, broker_url=redis_server.url)
-    port = free_port()
-    procs.api(port)
-    procs.worker("cpu1", "cpu", "--include", PLUGIN)
-    client = api_client(port)
-    wait_until(lambda: worker_ready(tmp_path / "cpu1.log"), 120, "the worker")
+    client = fake_pipeline_service(procs, worker="cpu1")
     r = client.post("/v1/environments", json={"name": "cell-2", "classes": CLASSES})
     assert r.status_code == 201, r.text
     env_id = r.json()["id"]

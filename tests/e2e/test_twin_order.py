@@ -18,11 +18,18 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, wait_until
+from tests.e2e.conftest import (
+    FAKE_PIPELINE,
+    Processes,
+    RedisServer,
+    api_client,
+    free_port,
+    wait_until,
+    worker_ready,
+)
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
-PLUGIN = "tests.e2e.fake_pipeline_plugin"
 CLASSES = ["drill", "bowl", "mug"]
 # class → box centre x (the fake pose's x, metres); the twin ends with the last scene
 SCENES: list[dict[str, float]] = [
@@ -53,10 +60,6 @@ def upload(client: httpx.Client, env_id: str, scene: dict[str, float], tag: str)
     return snap_id
 
 
-def worker_ready(log: Path) -> bool:
-    return log.exists() and " ready." in log.read_text(errors="replace")
-
-
 def test_two_workers_uploads_finishing_out_of_order_twin_in_seq_order(
     tmp_path: Path,
     pg_url: str,
@@ -67,7 +70,7 @@ def test_two_workers_uploads_finishing_out_of_order_twin_in_seq_order(
     port = free_port()
     procs.api(port)
     for name in ("cpu1", "cpu2"):
-        procs.worker(name, "cpu", "--include", PLUGIN)
+        procs.worker(name, "cpu", "--include", FAKE_PIPELINE)
     client = api_client(port)
     for name in ("cpu1", "cpu2"):
         log = tmp_path / f"{name}.log"

@@ -21,8 +21,16 @@ from tests.app.core.ditto_schema import THING_SCHEMA
 from tests.app.core.rfc_patches import apply_json_patch, apply_merge_patch
 from tests.app.core.test_webhook_formats import check_adt_patch
 from tests.app.core.test_webhooks import Receiver
-from tests.e2e.conftest import Processes, RedisServer, api_client, free_port, wait_until
-from tests.e2e.test_twin_order import CLASSES, PLUGIN, upload, worker_ready
+from tests.e2e.conftest import (
+    FAKE_PIPELINE,
+    Processes,
+    RedisServer,
+    api_client,
+    free_port,
+    wait_until,
+    worker_ready,
+)
+from tests.e2e.test_twin_order import CLASSES, upload
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
@@ -50,7 +58,7 @@ def test_three_formats_receive_the_same_change_signed(
     )
     port = free_port()
     procs.api(port)
-    procs.worker("cpu", "cpu", "--include", PLUGIN)
+    procs.worker("cpu", "cpu", "--include", FAKE_PIPELINE)
     procs.worker("wh", "webhooks", "-P", "threads")
     receiver = Receiver().start()
     try:

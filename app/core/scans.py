@@ -44,6 +44,7 @@ from app.core.models import Environment, Snapshot, new_id
 from app.core.settings import Settings
 from app.core.storage import CHUNK_BYTES, LocalStorage
 from app.formats import FormatError
+from app.formats.ply import HEADER_MAX_BYTES, ply_body_problem, read_ply_header, vertex_element
 from app.formats.scan import (
     CODE_EMPTY,
     CODE_INVALID,
@@ -53,14 +54,11 @@ from app.formats.scan import (
     ScanFrame,
     las_size_problem,
     parse_scan_frame,
-    ply_size_problem,
     read_las_header,
-    read_ply_layout,
     sniff_scan_format,
 )
 
 RECORD_NAME = "scan.json"
-PLY_HEADER_MAX = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -183,11 +181,11 @@ def check_header(path: Path, fmt: ScanFormat, size: int) -> int:
             count = header.point_count
         else:
             with path.open("rb") as fh:
-                layout = read_ply_layout(fh.read(PLY_HEADER_MAX), "file")
-            problem = ply_size_problem(layout, size)
+                ply = read_ply_header(fh.read(HEADER_MAX_BYTES), "file", code=CODE_INVALID)
+            count = vertex_element(ply, "file", code=CODE_INVALID).count
+            problem = ply_body_problem(ply, size)
             if problem:
                 raise _invalid(CODE_TRUNCATED, f"file: {problem}")
-            count = layout.vertex_count
     except FormatError as exc:
         raise _invalid(exc.code, exc.detail) from exc
     if count == 0:

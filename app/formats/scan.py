@@ -10,7 +10,7 @@ Formats:
   read here (:func:`read_las_header`).
 - **PLY**: starts ``ply``; the ``vertex`` element must come first and carry ``x y z``
   (optional ``red green blue``, ``intensity``), no list properties
-  (:func:`read_ply_layout`).
+  (:func:`app.formats.ply.read_ply_header` and :func:`app.formats.ply.vertex_element`).
 
 The frame document (multipart field ``frame``)::
 
@@ -32,7 +32,6 @@ from typing import Any, Literal
 
 from app.formats.cameras import Pose, check_rigid
 from app.formats.errors import FormatError, show
-from app.formats.ply import PLY_SCALAR_BYTES
 
 ScanFormat = Literal["e57", "las", "laz", "ply"]
 FrameMethod = Literal["transform", "markers"]
@@ -126,75 +125,6 @@ def las_size_problem(header: LasHeader, size_bytes: int, chunk_table_at: int | N
         return (
             f"the LAZ chunk table is at byte {chunk_table_at} but the file holds "
             f"{size_bytes}: it is truncated"
-        )
-    return None
-
-
-@dataclass(frozen=True)
-class PlyLayout:
-    """A PLY scan's vertex block: encoding, where it starts, how many, which properties."""
-
-    encoding: Literal["ascii", "binary_little_endian", "binary_big_endian"]
-    header_bytes: int
-    vertex_count: int
-    properties: tuple[tuple[str, str], ...]  # (name, PLY type) in file order
-
-    @property
-    def stride(self) -> int:
-        """Bytes per binary vertex."""
-        return sum(PLY_SCALAR_BYTES[kind] for _, kind in self.properties)
-
-
-def read_ply_layout(head: bytes, where: str = "scan") -> PlyLayout:
-    """The vertex layout of the PLY header in ``head``; FormatError ``InvalidScan`` when the
-    header is incomplete, ``vertex`` is not the first element, it lacks ``x y z`` or has a
-    list property."""
-    end = head.find(b"end_header")
-    newline = head.find(b"\n", end) if end >= 0 else -1
-    if newline < 0:
-        raise FormatError(where, "the PLY header has no 'end_header' line", code=CODE_INVALID)
-    encoding = ""
-    elements: list[tuple[str, int, list[tuple[str, str]]]] = []
-    for line in head[:end].decode("latin-1").splitlines():
-        words = line.split()
-        if len(words) >= 2 and words[0] == "format":
-            encoding = words[1]
-        elif len(words) == 3 and words[0] == "element":
-            if not (words[2].isascii() and words[2].isdigit()):
-                raise FormatError(where, f"element {words[1]!r} has no count", code=CODE_INVALID)
-            elements.append((words[1], int(words[2]), []))
-        elif len(words) >= 3 and words[0] == "property" and elements:
-            if words[1] == "list":
-                if elements[-1][0] == "vertex":
-                    raise FormatError(
-                        where, "list properties in 'vertex' are not supported", code=CODE_INVALID
-                    )
-                continue
-            if words[1] not in PLY_SCALAR_BYTES:
-                raise FormatError(
-                    where, f"unknown PLY property type {words[1]!r}", code=CODE_INVALID
-                )
-            elements[-1][2].append((words[2], words[1]))
-    if encoding not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise FormatError(where, f"unknown PLY format {show(encoding)}", code=CODE_INVALID)
-    if not elements or elements[0][0] != "vertex":
-        raise FormatError(where, "the first PLY element must be 'vertex'", code=CODE_INVALID)
-    _, count, props = elements[0]
-    if not {"x", "y", "z"} <= {name for name, _ in props}:
-        raise FormatError(where, "the PLY vertices have no x, y, z", code=CODE_INVALID)
-    return PlyLayout(encoding, newline + 1, count, tuple(props))  # type: ignore[arg-type]
-
-
-def ply_size_problem(layout: PlyLayout, size_bytes: int) -> str | None:
-    """Why a PLY file of ``size_bytes`` cannot hold its declared vertices, or None (binary:
-    exactly ``count × stride`` bytes at least; ASCII: two characters per value at least)."""
-    body = size_bytes - layout.header_bytes
-    per = layout.stride if layout.encoding != "ascii" else 2 * len(layout.properties)
-    need = layout.vertex_count * per
-    if need > body:
-        return (
-            f"the PLY header declares {layout.vertex_count} vertices, which need at least "
-            f"{need} bytes, but the file holds {body} after its header: it is truncated"
         )
     return None
 

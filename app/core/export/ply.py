@@ -4,7 +4,7 @@ read with memory for one chunk).
 
 ASCII, binary little-endian and binary big-endian files are read. Every failure is a
 :class:`PlyError` naming the file and what is wrong; the element counts a header declares are
-checked against the file's size first (:func:`app.formats.ply.ply_count_problem`).
+checked against the file's size first (:func:`app.formats.ply.read_ply_file_header`).
 """
 
 from __future__ import annotations
@@ -17,17 +17,16 @@ from typing import BinaryIO
 import numpy as np
 from numpy.typing import NDArray
 
-from app.formats.ply import ply_count_problem
+from app.formats import FormatError
+from app.formats.ply import (
+    PLY_SCALARS,
+    PlyElement,
+    PlyHeader,
+    PlyProperty,
+    read_ply_file_header,
+    vertex_element,
+)
 
-HEADER_MAX_BYTES = 64 * 1024
-
-# NumPy dtype (without byte order) of each PLY scalar type
-_SCALARS = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
 _COLOR_NAMES = (
     ("red", "green", "blue"),
     ("r", "g", "b"),
@@ -37,47 +36,6 @@ _COLOR_NAMES = (
 
 class PlyError(ValueError):
     """A PLY file that cannot be read: its header, its counts or its body."""
-
-
-@dataclass(frozen=True)
-class PlyProperty:
-    """One property: ``kind`` the scalar type, or for a list ``count_kind`` its length's."""
-
-    name: str
-    kind: str
-    count_kind: str | None = None
-
-
-@dataclass(frozen=True)
-class PlyElement:
-    name: str
-    count: int
-    properties: tuple[PlyProperty, ...]
-
-    @property
-    def scalar_only(self) -> bool:
-        return all(p.count_kind is None for p in self.properties)
-
-
-@dataclass(frozen=True)
-class PlyHeader:
-    """``fmt`` ascii | binary_little_endian | binary_big_endian; ``data_offset`` the byte
-    where the body starts."""
-
-    fmt: str
-    elements: tuple[PlyElement, ...]
-    data_offset: int
-
-    @property
-    def byte_order(self) -> str:
-        return ">" if self.fmt == "binary_big_endian" else "<"
-
-    def element(self, name: str) -> PlyElement | None:
-        return next((e for e in self.elements if e.name == name), None)
-
-    def dtype(self, element: PlyElement) -> np.dtype[np.void]:
-        """The packed record of a scalar-only element in this file's byte order."""
-        return np.dtype([(p.name, self.byte_order + _SCALARS[p.kind]) for p in element.properties])
 
 
 @dataclass(frozen=True)
@@ -92,68 +50,40 @@ class PlyModel:
     triangles: NDArray[np.int64] | None
 
 
-def read_header(path: Path) -> PlyHeader:
-    """The header of ``path``; PlyError when it is not a PLY header, names an unknown
-    type, or declares more elements than the file can hold."""
-    size = path.stat().st_size
-    with path.open("rb") as fh:
-        head = fh.read(HEADER_MAX_BYTES)
-    end = head.find(b"end_header")
-    if not head.startswith(b"ply") or end < 0:
-        raise PlyError(f"{path.name}: not a PLY file with a complete header")
-    newline = head.find(b"\n", end)
-    if newline < 0:
-        raise PlyError(f"{path.name}: the header's last line has no line end")
-    problem = ply_count_problem(head, size)
-    if problem is not None:
-        raise PlyError(f"{path.name}: {problem}")
-    fmt = ""
-    elements: list[tuple[str, int, list[PlyProperty]]] = []
-    for line in head[:end].decode("latin-1").splitlines()[1:]:
-        words = line.split()
-        if words[:1] == ["format"] and len(words) >= 2:
-            fmt = words[1]
-        elif words[:1] == ["element"] and len(words) == 3:
-            elements.append((words[1], int(words[2]), []))
-        elif words[:1] == ["property"] and elements:
-            if words[1] == "list" and len(words) == 5:
-                elements[-1][2].append(PlyProperty(words[4], words[3], words[2]))
-            elif len(words) == 3:
-                elements[-1][2].append(PlyProperty(words[2], words[1]))
-            else:
-                raise PlyError(f"{path.name}: cannot read the header line {line!r}")
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise PlyError(f"{path.name}: unknown PLY format {fmt!r}")
-    return PlyHeader(
-        fmt,
-        tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements),
-        newline + 1,
-    )
+def read_header(path: Path) -> tuple[PlyHeader, PlyElement]:
+    """The header of ``path`` (:func:`app.formats.ply.read_ply_file_header`) and its leading
+    vertex element; PlyError naming the file when the header is not one, declares more than
+    the file holds, or has no leading vertex element with x, y and z and no lists."""
+    try:
+        header = read_ply_file_header(path)
+        return header, vertex_element(header, path.name)
+    except FormatError as exc:
+        raise PlyError(exc.detail) from exc
 
 
-def _vertex_element(path: Path, header: PlyHeader) -> PlyElement:
-    vertex = header.element("vertex")
-    if vertex is None or not {"x", "y", "z"} <= {p.name for p in vertex.properties}:
-        raise PlyError(f"{path.name}: no vertex element with x, y and z")
-    if header.elements[0] is not vertex or not vertex.scalar_only:
-        raise PlyError(f"{path.name}: the vertex element must come first, without lists")
-    return vertex
+def _dtype(header: PlyHeader, element: PlyElement) -> np.dtype[np.void]:
+    """The packed record of a scalar-only element in the file's byte order."""
+    return np.dtype(header.fields(element))
+
+
+def _scalar(header: PlyHeader, kind: str) -> np.dtype[np.generic]:
+    """One PLY scalar type in the file's byte order."""
+    return np.dtype(header.byte_order + PLY_SCALARS[kind].code)
 
 
 def iter_vertices(path: Path, chunk: int = 1 << 20) -> Iterator[NDArray[np.void]]:
     """The vertex records of ``path``, at most ``chunk`` at a time, as structured arrays
     with the file's property names (read a chunk at a time, never whole).
     PlyError when the file has no leading vertex element with x, y and z."""
-    header = read_header(path)
-    vertex = _vertex_element(path, header)
+    header, vertex = read_header(path)
     if header.fmt == "ascii":
         with path.open("rb") as fh:
-            fh.seek(header.data_offset)
+            fh.seek(header.header_bytes)
             yield from _ascii_vertices(path, fh, header, vertex, chunk)
         return
-    dtype = header.dtype(vertex)
+    dtype = _dtype(header, vertex)
     with path.open("rb") as fh:
-        fh.seek(header.data_offset)
+        fh.seek(header.header_bytes)
         for start in range(0, vertex.count, chunk):
             n = min(chunk, vertex.count - start)
             records = np.fromfile(fh, dtype=dtype, count=n)
@@ -165,7 +95,7 @@ def iter_vertices(path: Path, chunk: int = 1 << 20) -> Iterator[NDArray[np.void]
 def _ascii_vertices(
     path: Path, fh: BinaryIO, header: PlyHeader, vertex: PlyElement, chunk: int
 ) -> Iterator[NDArray[np.void]]:
-    dtype = np.dtype([(p.name, _SCALARS[p.kind]) for p in vertex.properties])
+    dtype = _dtype(header, vertex)
     names = dtype.names or ()
     left = vertex.count
     while left > 0:
@@ -206,9 +136,8 @@ def read_model(path: Path) -> PlyModel:
     """A mesh or point-cloud PLY file whole (a library model). Faces named
     ``vertex_indices`` or ``vertex_index`` are fanned into triangles; a face naming a vertex
     the file lacks is a PlyError, as is a body shorter than its header says."""
-    header = read_header(path)
-    vertex = _vertex_element(path, header)
-    records = np.concatenate(list(iter_vertices(path)) or [np.empty(0, header.dtype(vertex))])
+    header, vertex = read_header(path)
+    records = np.concatenate(list(iter_vertices(path)) or [np.empty(0, _dtype(header, vertex))])
     names = set(records.dtype.names or ())
     normals = (
         np.stack([records[a].astype(np.float64) for a in ("nx", "ny", "nz")], axis=1)
@@ -230,7 +159,7 @@ def _read_triangles(path: Path, header: PlyHeader) -> NDArray[np.int64]:
     """(F, 3) triangles of the face element: the fast path reads packed triangle records,
     anything else (polygons, extra properties, ASCII) is walked element by element."""
     with path.open("rb") as fh:
-        fh.seek(header.data_offset)
+        fh.seek(header.header_bytes)
         body = fh.read()
     if header.fmt == "ascii":
         return _ascii_triangles(path, header, body)
@@ -246,7 +175,7 @@ def _skip_binary(
     path: Path, header: PlyHeader, element: PlyElement, body: bytes, offset: int
 ) -> int:
     if element.scalar_only:
-        return offset + element.count * header.dtype(element).itemsize
+        return offset + element.count * _dtype(header, element).itemsize
     for _ in range(element.count):
         for prop in element.properties:
             offset = _skip_property(path, header, prop, body, offset)
@@ -254,10 +183,10 @@ def _skip_binary(
 
 
 def _skip_property(path: Path, header: PlyHeader, prop: PlyProperty, body: bytes, at: int) -> int:
-    item = np.dtype(header.byte_order + _SCALARS[prop.kind])
+    item = _scalar(header, prop.kind)
     if prop.count_kind is None:
         return at + item.itemsize
-    count_type = np.dtype(header.byte_order + _SCALARS[prop.count_kind])
+    count_type = _scalar(header, prop.count_kind)
     if at + count_type.itemsize > len(body):
         raise PlyError(f"{path.name}: the file ends inside element data")
     n = int(np.frombuffer(body, count_type, 1, at)[0])
@@ -270,8 +199,8 @@ def _binary_triangles(
     props = face.properties
     index_names = {"vertex_indices", "vertex_index"}
     if len(props) == 1 and props[0].name in index_names and props[0].count_kind is not None:
-        count_t = header.byte_order + _SCALARS[props[0].count_kind]
-        index_t = header.byte_order + _SCALARS[props[0].kind]
+        count_t = _scalar(header, props[0].count_kind)
+        index_t = _scalar(header, props[0].kind)
         packed = np.dtype([("n", count_t), ("v", index_t, (3,))])
         if offset + face.count * packed.itemsize <= len(body):
             rows = np.frombuffer(body, packed, face.count, offset)
@@ -282,8 +211,8 @@ def _binary_triangles(
         for prop in props:
             end = _skip_property(path, header, prop, body, offset)
             if prop.name in index_names and prop.count_kind is not None:
-                size = np.dtype(_SCALARS[prop.count_kind]).itemsize
-                item = np.dtype(header.byte_order + _SCALARS[prop.kind])
+                size = PLY_SCALARS[prop.count_kind].size
+                item = _scalar(header, prop.kind)
                 polygons.append(np.frombuffer(body[offset + size : end], item).tolist())
             offset = end
     if offset > len(body):

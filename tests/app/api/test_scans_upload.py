@@ -165,7 +165,7 @@ def _empty(tmp_path: Path, fmt: str) -> bytes:
         (_truncated, "las", "TruncatedScan", "declares 2000 points"),
         (_truncated, "laz", "TruncatedScan", "truncated"),
         (_truncated, "e57", "TruncatedScan", "truncated"),
-        (_truncated, "ply", "TruncatedScan", "declares 2000 vertices"),
+        (_truncated, "ply", "TruncatedScan", "declares 2000 vertex elements"),
         (_empty, "las", "EmptyScan", "no points"),
         (_empty, "ply", "EmptyScan", "no points"),
     ],

@@ -9,7 +9,8 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from app.formats.ply import ply_count_problem
+from app.formats import FormatError
+from app.formats.ply import read_ply_file_header
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Points
 from workers.pipeline.model.options import UNITS_TO_M, ModelOptions
@@ -37,16 +38,15 @@ def check_model_header(path: Path) -> None:
     suffix = path.suffix.lower()
     if suffix not in {".ply", ".off"}:
         return
+    if suffix == ".ply":
+        try:
+            read_ply_file_header(path)
+        except FormatError as exc:
+            raise ModelFileError(exc.detail) from exc
+        return
     size = path.stat().st_size
     with path.open("rb") as fh:
         head = fh.read(_HEADER_MAX_BYTES)
-    if suffix == ".ply":
-        if not head.startswith(b"ply") or b"end_header" not in head:
-            raise ModelFileError(f"{path.name}: not a PLY file with a complete header")
-        problem = ply_count_problem(head, size)
-        if problem is not None:
-            raise ModelFileError(f"{path.name}: {problem}")
-        return
     body_bytes, needed = _off_needs(head, size, path.name)
     for what, count, at_least in needed:
         if count < 0 or count * at_least > body_bytes:

@@ -21,7 +21,8 @@ import pye57
 from numpy.typing import NDArray
 
 from app.formats import FormatError
-from app.formats.scan import ScanFormat, read_ply_layout
+from app.formats.ply import PLY_SCALARS, read_ply_file_header, vertex_element
+from app.formats.scan import ScanFormat
 from workers.pipeline.errors import InputError
 
 FloatArray = NDArray[np.float64]
@@ -30,12 +31,6 @@ ColorArray = NDArray[np.uint8]
 _CARTESIAN = ("cartesianX", "cartesianY", "cartesianZ")
 _SPHERICAL = ("sphericalRange", "sphericalAzimuth", "sphericalElevation")
 _RGB = ("colorRed", "colorGreen", "colorBlue")
-_PLY_NUMPY = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
 
 
 class ScanReadError(InputError):
@@ -173,16 +168,17 @@ def _ply_colors(columns: Mapping[str, NDArray[Any]]) -> ColorArray | None:
 
 
 def _iter_ply(path: Path, chunk: int) -> Iterator[ScanChunk]:
-    with path.open("rb") as fh:
-        try:
-            layout = read_ply_layout(fh.read(64 * 1024))
-        except FormatError as exc:
-            raise ScanReadError(exc.detail) from exc
-    names = [name for name, _ in layout.properties]
-    if layout.encoding == "ascii":
+    try:
+        header = read_ply_file_header(path, "scan")
+        vertex = vertex_element(header, "scan")
+    except FormatError as exc:
+        raise ScanReadError(exc.detail) from exc
+    names = [p.name for p in vertex.properties]
+    if header.fmt == "ascii":
+        kinds = {p.name: PLY_SCALARS[p.kind].code for p in vertex.properties}
         with path.open("rb") as fh:
-            fh.seek(layout.header_bytes)
-            left = layout.vertex_count
+            fh.seek(header.header_bytes)
+            left = vertex.count
             while left > 0:
                 lines = list(itertools.islice(fh, min(chunk, left)))
                 if not lines:
@@ -192,16 +188,17 @@ def _iter_ply(path: Path, chunk: int) -> Iterator[ScanChunk]:
                 columns = {n: rows[:, i] for i, n in enumerate(names)}
                 for rgb in ("red", "green", "blue", "r", "g", "b"):  # ASCII ints: their PLY type
                     if rgb in columns:
-                        kind = dict(layout.properties)[rgb]
-                        columns[rgb] = columns[rgb].astype(_PLY_NUMPY[kind])
+                        columns[rgb] = columns[rgb].astype(kinds[rgb])
                 yield _ply_chunk(columns)
         return
-    order = "<" if layout.encoding == "binary_little_endian" else ">"
-    dtype = np.dtype([(n, order + _PLY_NUMPY[kind]) for n, kind in layout.properties])
     vertices = np.memmap(
-        path, dtype=dtype, mode="r", offset=layout.header_bytes, shape=(layout.vertex_count,)
+        path,
+        dtype=np.dtype(header.fields(vertex)),
+        mode="r",
+        offset=header.header_bytes,
+        shape=(vertex.count,),
     )
-    for start in range(0, layout.vertex_count, chunk):
+    for start in range(0, vertex.count, chunk):
         block = np.asarray(vertices[start : start + chunk])
         yield _ply_chunk({n: block[n].astype(block[n].dtype.newbyteorder("=")) for n in names})
 

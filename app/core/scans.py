@@ -22,16 +22,12 @@ from pathlib import Path
 from typing import Any, BinaryIO
 
 import pye57
-from sqlalchemy import func, select
-from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import environments, jobs
-from app.core.enums import JobKind, SnapshotSource, SnapshotState
-from app.core.errors import Conflict, UnsupportedMedia
+from app.core import environments
+from app.core.enums import SnapshotSource
+from app.core.errors import UnsupportedMedia
 from app.core.ingest.common import (
-    _SEQ_RETRIES,
-    TASK,
     _disk_full,
     _invalid,
     _no_space,
@@ -39,8 +35,8 @@ from app.core.ingest.common import (
     _too_large,
 )
 from app.core.ingest.staging import _staging_dir, sweep_staging
-from app.core.ingest.upload import _MOVED_IN, Ingested, _reading, _replay
-from app.core.models import Environment, Snapshot, new_id
+from app.core.ingest.upload import Ingested, _reading, insert_snapshot, replay_of
+from app.core.models import Environment
 from app.core.settings import Settings
 from app.core.storage import CHUNK_BYTES, LocalStorage
 from app.formats import FormatError
@@ -238,13 +234,9 @@ def create_scan_snapshot(
         staged = _stream_in(source, root, settings.max_scan_bytes)
         frame_json = json.dumps(frame.to_json(), sort_keys=True)
         digest = hashlib.sha256(f"scan\0{staged.sha256}\0{frame_json}".encode()).hexdigest()
-        if idempotency_key is not None:
-            with _reading(session, lookup) as reader:
-                replay = _replay(reader, env_id, idempotency_key, digest)
-            if replay is not None and lookup is not None:
-                replay = _replay(session, env_id, idempotency_key, digest)
-            if replay is not None:
-                return replay
+        replay = replay_of(session, lookup, env_id, idempotency_key, digest)
+        if replay is not None:
+            return replay
         count = check_header(staged.path, staged.format, staged.size)
         record = {
             "format": staged.format,
@@ -254,71 +246,15 @@ def create_scan_snapshot(
             "bytes": staged.size,
         }
         (root / RECORD_NAME).write_text(json.dumps(record))
-        return _insert(session, storage, env_id, root, staged.size, idempotency_key, digest)
+        return insert_snapshot(
+            session, storage, env_id, root, _scan_fields(staged.size), idempotency_key, digest
+        )
 
 
-def _insert(
-    session: Session,
-    storage: LocalStorage,
-    env_id: str,
-    root: Path,
-    size: int,
-    idempotency_key: str | None,
-    digest: str,
-) -> Ingested:
-    """Insert the snapshot (the environment's next seq) and its job; move the staged files
-    in (removed again if the transaction rolls back)."""
-    session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
-    environments.get(session, env_id)  # 404 if it went while the file was checked
-    snapshot_id = new_id()
-    prefix = f"snapshots/{snapshot_id}"
-    snap: Snapshot | None = None
-    for _ in range(_SEQ_RETRIES):
-        if idempotency_key is not None:
-            replay = _replay(session, env_id, idempotency_key, digest)
-            if replay is not None:
-                return replay
-        latest = session.scalar(
-            select(func.max(Snapshot.seq)).where(Snapshot.environment_id == env_id)
-        )
-        candidate = Snapshot(
-            **_scan_fields(snapshot_id, env_id, (latest or 0) + 1, prefix, size),
-            idempotency_key=idempotency_key,
-            request_digest=digest,
-        )
-        try:
-            with session.begin_nested():
-                session.add(candidate)
-                session.flush()
-        except IntegrityError:  # a concurrent upload took the seq or the key: look again
-            continue
-        snap = candidate
-        break
-    if snap is None:
-        raise Conflict(
-            f"environment {env_id}: too many concurrent uploads, try again",
-            code="ConcurrentUpload",
-        )
-    try:
-        storage.move_in(root, prefix)
-        job = jobs.create(
-            session, JobKind.snapshot, TASK, environment_id=env_id, snapshot_id=snap.id
-        )
-    except BaseException:
-        storage.delete_prefix(prefix)
-        raise
-    session.info.setdefault(_MOVED_IN, []).append((storage, prefix))
-    return Ingested(snapshot=snap, job=job, created=True)
-
-
-def _scan_fields(snapshot_id: str, env_id: str, seq: int, prefix: str, size: int) -> dict[str, Any]:
+def _scan_fields(size: int) -> dict[str, Any]:
+    """A scan snapshot's columns: one file of ``size`` bytes, no images or cameras."""
     return {
-        "id": snapshot_id,
-        "environment_id": env_id,
-        "seq": seq,
-        "state": SnapshotState.uploaded,
         "source": SnapshotSource.scan,
-        "storage_prefix": prefix,
         "n_images": 0,
         "n_detections": 0,
         "upload_bytes": size,

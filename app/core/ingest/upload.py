@@ -4,10 +4,11 @@ move its files in and queue its job, once; a replayed Idempotency-Key returns th
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import event, func, select
@@ -150,15 +151,19 @@ def create_snapshot(
         staging = _Staging(root=staging_dir, settings=settings)
         _stage_files(staging, files)
         digest = staging.digest()
-        if idempotency_key is not None:
-            with _reading(session, lookup) as reader:
-                replay = _replay(reader, env_id, idempotency_key, digest)
-            if replay is not None and lookup is not None:
-                replay = _replay(session, env_id, idempotency_key, digest)  # in this session
-            if replay is not None:
-                return replay
+        replay = replay_of(session, lookup, env_id, idempotency_key, digest)
+        if replay is not None:
+            return replay
         checked = _validate(staging, classes)
-        return _insert(session, storage, env_id, staging, checked, idempotency_key, digest)
+        fields = {
+            "n_images": len(staging.images),
+            "n_detections": checked.n_detections,
+            "upload_bytes": staging.n_bytes,
+            "has_cameras": staging.cameras is not None,
+        }
+        return insert_snapshot(
+            session, storage, env_id, staging.root, fields, idempotency_key, digest
+        )
 
 
 def _stage_files(staging: _Staging, files: UploadFiles) -> None:
@@ -185,6 +190,25 @@ def _reading(session: Session, lookup: sessionmaker[Session] | None) -> Iterator
         yield reader
 
 
+def replay_of(
+    session: Session,
+    lookup: sessionmaker[Session] | None,
+    environment_id: str,
+    key: str | None,
+    digest: str,
+) -> Ingested | None:
+    """The earlier upload with ``Idempotency-Key`` ``key`` (:func:`_replay`), looked up
+    first with ``lookup``'s short session and then, when found, again in ``session`` (so the
+    answer's rows belong to it); None without a key or when it is new."""
+    if key is None:
+        return None
+    with _reading(session, lookup) as reader:
+        replay = _replay(reader, environment_id, key, digest)
+    if replay is not None and lookup is not None:
+        replay = _replay(session, environment_id, key, digest)
+    return replay
+
+
 def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ingested | None:
     """The snapshot an earlier request with this key made, when the files are the same;
     409 ``IdempotencyKeyReused`` when they differ; None when the key is new."""
@@ -206,43 +230,46 @@ def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ing
     return Ingested(snapshot=snap, job=job, created=False)
 
 
-def _insert(
+def insert_snapshot(
     session: Session,
     storage: LocalStorage,
     env_id: str,
-    staging: _Staging,
-    checked: _Checked,
+    root: Path,
+    fields: Mapping[str, Any],
     idempotency_key: str | None,
     digest: str,
 ) -> Ingested:
+    """Insert an upload's snapshot (state ``uploaded``, the environment's next ``seq``, the
+    columns in ``fields``; ``cameras_key`` when ``has_cameras``) and its job, and move the
+    checked files at ``root`` in under ``snapshots/<id>``. The photo and the scan uploads
+    both end here. A concurrent upload that takes the seq or the ``Idempotency-Key`` first
+    makes it look again (the key's replay, or the next seq), at most ``_SEQ_RETRIES`` times:
+    then 409 ``ConcurrentUpload``. 404 when the environment went while the files were
+    checked."""
     # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
     session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
-    env = environments.get(session, env_id)  # 404 if it went while the files were checked
+    environments.get(session, env_id)
     snapshot_id = new_id()
     prefix = f"snapshots/{snapshot_id}"
     snap: Snapshot | None = None
     for _ in range(_SEQ_RETRIES):
         if idempotency_key is not None:
-            replay = _replay(session, env.id, idempotency_key, digest)
+            replay = _replay(session, env_id, idempotency_key, digest)
             if replay is not None:
                 return replay
-        seq = (
-            session.scalar(select(func.max(Snapshot.seq)).where(Snapshot.environment_id == env.id))
-            or 0
-        ) + 1
+        latest = session.scalar(
+            select(func.max(Snapshot.seq)).where(Snapshot.environment_id == env_id)
+        )
         candidate = Snapshot(
             id=snapshot_id,
-            environment_id=env.id,
-            seq=seq,
+            environment_id=env_id,
+            seq=(latest or 0) + 1,
             state=SnapshotState.uploaded,
             idempotency_key=idempotency_key,
             request_digest=digest,
             storage_prefix=prefix,
-            n_images=len(staging.images),
-            n_detections=checked.n_detections,
-            upload_bytes=staging.n_bytes,
-            has_cameras=staging.cameras is not None,
-            cameras_key=f"{prefix}/{CAMERAS_NAME}" if staging.cameras is not None else None,
+            cameras_key=f"{prefix}/{CAMERAS_NAME}" if fields.get("has_cameras") else None,
+            **fields,
         )
         try:
             with session.begin_nested():
@@ -254,13 +281,13 @@ def _insert(
         break
     if snap is None:
         raise Conflict(
-            f"environment {env.id}: too many concurrent uploads, try again",
+            f"environment {env_id}: too many concurrent uploads, try again",
             code="ConcurrentUpload",
         )
     try:
-        storage.move_in(staging.root, prefix)
+        storage.move_in(root, prefix)
         job = jobs.create(
-            session, JobKind.snapshot, TASK, environment_id=env.id, snapshot_id=snap.id
+            session, JobKind.snapshot, TASK, environment_id=env_id, snapshot_id=snap.id
         )
     except BaseException:
         storage.delete_prefix(prefix)

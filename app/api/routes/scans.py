@@ -7,10 +7,10 @@ from typing import Annotated, BinaryIO
 
 from fastapi import APIRouter, Depends, File, Form, Header, Response, UploadFile, status
 
+from app.api.answers import snapshot_accepted
 from app.api.deps import CaptureKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, MALFORMED, ErrorOut
-from app.api.schemas.jobs import JobRead
-from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
+from app.api.schemas.snapshots import SnapshotAccepted
 from app.core import auth, scans
 from app.core.db import get_read_session_factory
 
@@ -82,10 +82,4 @@ def upload_scan(
         idempotency_key=upload.idempotency_key,
         lookup=get_read_session_factory(),
     )
-    response.headers["Location"] = f"/v1/jobs/{result.job.id}"
-    if not result.created:
-        response.headers["Idempotent-Replayed"] = "true"
-    return SnapshotAccepted(
-        snapshot=SnapshotRead.of(result.snapshot, result.job, None),
-        job=JobRead.of(result.job),
-    )
+    return snapshot_accepted(response, result)

@@ -9,6 +9,7 @@ from fastapi import APIRouter, Depends, File, Header, Query, Request, Response, 
 from fastapi.responses import StreamingResponse
 
 from app.api import negotiate
+from app.api.answers import snapshot_accepted
 from app.api.deps import AdminKey, CaptureKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, MALFORMED, ErrorOut, conflict
 from app.api.schemas.exports import (
@@ -18,7 +19,6 @@ from app.api.schemas.exports import (
     PLY_MEDIA_TYPE,
     CloudFormat,
 )
-from app.api.schemas.jobs import JobRead
 from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
 from app.core import auth, ingest, retention, snapshots
 from app.core.db import get_read_session_factory
@@ -100,13 +100,7 @@ def upload_snapshot(
         # write lock (SQLite) only for the insert, not while the files are checked.
         lookup=get_read_session_factory(),
     )
-    response.headers["Location"] = f"/v1/jobs/{result.job.id}"
-    if not result.created:
-        response.headers["Idempotent-Replayed"] = "true"
-    return SnapshotAccepted(
-        snapshot=SnapshotRead.of(result.snapshot, result.job, None),
-        job=JobRead.of(result.job),
-    )
+    return snapshot_accepted(response, result)
 
 
 @router.get("/snapshots/{snapshot_id}")

@@ -14,6 +14,7 @@ from starlette.concurrency import run_in_threadpool
 from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.api.answers import point_to
 from app.api.deps import CaptureKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, ErrorOut, conflict
 from app.api.schemas.uploads import UploadRead
@@ -188,11 +189,10 @@ def create_upload(
     auth.require_environment(key, new.environment_id)
     upload, created = uploads.create(session, storage, settings, new)
     response = Response(status_code=status.HTTP_201_CREATED)
-    response.headers["Location"] = f"/v1/uploads/{upload.id}"
+    point_to(response, f"/v1/uploads/{upload.id}", replayed=not created)
     response.headers["Upload-Expires"] = uploads.expires_header(upload.expires_at)
     response.headers["Upload-Offset"] = str(uploads.offset(storage, upload))
     if not created:
-        response.headers["Idempotent-Replayed"] = "true"
         _result_headers(upload, response)
     return response
 

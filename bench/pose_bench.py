@@ -151,7 +151,9 @@ def run_ycb(names: list[str], trials: int, work: Path, seed: int = 0) -> dict[st
 
 def run_milk(trials: int, work: Path) -> dict[str, Any]:
     model = prepare_model(DATA / "pcl" / "milk.pcd", work / "milk")
-    scene = SceneCloud.from_file(DATA / "pcl" / "milk_cartoon_all_small_clorox.pcd")
+    scene = SceneCloud.from_file(
+        DATA / "pcl" / "milk_cartoon_all_small_clorox.pcd", viewpoint_env=(0.0, 0.0, 0.0)
+    )
     assert scene.normals is not None
     rows: list[dict[str, Any]] = []
     for k in range(trials):

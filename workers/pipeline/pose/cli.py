@@ -36,7 +36,13 @@ def cli(argv: list[str]) -> int:
         required=True,
         help="cluster centre x,y,z in metres (write --center=-0.1,0.2,0.8 for negatives)",
     )
-    ap.add_argument("--viewpoint", type=_vec3, default=None, help="orient estimated normals to it")
+    ap.add_argument(
+        "--viewpoint",
+        type=_vec3,
+        default=None,
+        help="camera x,y,z of a single depth frame: normals missing from --scene face it "
+        "(default: away from the cluster, as in the service)",
+    )
     ap.add_argument("--previous", type=Path, default=None, help="JSON 4×4 previous pose")
     ap.add_argument("--preset", default="default", choices=sorted(POSE_PRESETS))
     ap.add_argument("--seed", type=int, default=0)

@@ -51,22 +51,23 @@ class SceneCloud:
 
     @classmethod
     def from_file(cls, path: Path, viewpoint_env: ArrayLike | None = None) -> SceneCloud:
-        """Read a cloud file; without normals, estimate them and orient them towards
-        ``viewpoint_env`` (default the origin, the camera of a single depth frame)."""
+        """Read a cloud file. Without normals in the file: with ``viewpoint_env`` (the camera
+        of a single depth frame, metres) they are estimated and oriented towards it; without
+        it they are left to the crop, which orients them as the service does (away from the
+        cluster centre, horizontal ones up)."""
         pcd = o3d.io.read_point_cloud(Path(path)).remove_non_finite_points()
         if len(pcd.points) == 0:
             raise InputError(f"{Path(path).name}: no finite points could be read")
-        if not pcd.has_normals():
+        if not pcd.has_normals() and viewpoint_env is not None:
             pts = np.asarray(pcd.points)
             ext = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
             pcd.estimate_normals(
                 o3d.geometry.KDTreeSearchParamHybrid(radius=ext / np.sqrt(len(pts)) * 6, max_nn=30)
             )
-            vp = np.zeros(3) if viewpoint_env is None else np.asarray(viewpoint_env, np.float64)
-            pcd.orient_normals_towards_camera_location(vp)
+            pcd.orient_normals_towards_camera_location(np.asarray(viewpoint_env, np.float64))
         return cls.create(
             np.asarray(pcd.points),
-            np.asarray(pcd.normals),
+            np.asarray(pcd.normals) if pcd.has_normals() else None,
             np.asarray(pcd.colors) if pcd.has_colors() else None,
         )
 

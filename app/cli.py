@@ -268,6 +268,9 @@ def _client(args: argparse.Namespace) -> Client:
 def upload_command(args: argparse.Namespace) -> int:
     """``twindelta upload DIR --env NAME [--wait]``: pack, upload resumably, and with
     ``--wait`` follow the job's stages and print the changes; 1 on any failure."""
+    if not args.dir.is_dir():
+        print(f"twindelta upload: {args.dir}: no such folder", file=sys.stderr)
+        return 1
     bar = ProgressBar(sys.stderr)
     with _client(args) as client:
         env = client.environment(args.env)

@@ -78,3 +78,13 @@ def test_seed_sends_the_file_once_with_its_content_type_and_names_refusals(
     assert cli.main([*args[:1], str(bad), *args[2:]]) == 1
     assert sent[-1].headers["content-type"] == "application/json" and len(sent) == 2
     assert "row 0: unknown class 'hammer'" in capsys.readouterr().err
+
+
+def test_upload_names_a_missing_folder_before_asking_the_service(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """No request is made (the URL is unreachable): the folder is the problem named."""
+    missing = tmp_path / "no-capture"
+    argv = ["upload", str(missing), "--env", "x", "--url", "http://127.0.0.1:9", "--key", "k"]
+    assert cli.main(argv) == 1
+    assert f"{missing}: no such folder" in capsys.readouterr().err

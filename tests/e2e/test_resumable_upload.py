@@ -284,7 +284,10 @@ def test_cli_upload_wait_prints_the_changes_and_a_rerun_makes_no_second_snapshot
     assert "mug" in state.stdout and "bowl" not in state.stdout
     changes = run_cli("changes", "--env", "cell-cli", *url)
     assert changes.returncode == 0 and "moved" in changes.stdout
-    bad = run_cli("upload", str(tmp_path / "missing"), "--env", "cell-cli", *url)
+    (tmp_path / "empty").mkdir()
+    bad = run_cli("upload", str(tmp_path / "empty"), "--env", "cell-cli", *url)
     assert bad.returncode == 1 and "no images" in bad.stderr
+    missing = run_cli("upload", str(tmp_path / "missing"), "--env", "cell-cli", *url)
+    assert missing.returncode == 1 and "missing: no such folder" in missing.stderr
     unknown = run_cli("state", "--env", "no-such-cell", *url)
     assert unknown.returncode == 1 and "no-such-cell" in unknown.stderr

@@ -143,12 +143,10 @@ def _time(value: datetime) -> str:
     return aware(value).isoformat().replace("+00:00", "Z")
 
 
-def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
-    """The JSON Patch (RFC 6902) for Azure Digital Twins' Update DigitalTwin on twin
-    ``change.twin_id`` of model :data:`ADT_MODEL_ID`: ``add`` operations only (valid
-    whether the property is set yet or not). A removal sets ``present`` false and leaves
-    the last pose."""
-    values: dict[str, Any] = {
+def _twin_properties(change: InstanceChange) -> dict[str, Any]:
+    """The properties both adapters set on the platform's twin (ADT properties, Ditto
+    attributes): class, environment, presence, the change and when it happened."""
+    props: dict[str, Any] = {
         "objectClass": change.object_class,
         "environment": change.environment_id,
         "present": change.present,
@@ -159,7 +157,16 @@ def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
         "changedAt": _time(change.changed_at),
     }
     if change.library_object_id is not None:
-        values["libraryObject"] = change.library_object_id
+        props["libraryObject"] = change.library_object_id
+    return props
+
+
+def adt_patch(change: InstanceChange) -> list[dict[str, Any]]:
+    """The JSON Patch (RFC 6902) for Azure Digital Twins' Update DigitalTwin on twin
+    ``change.twin_id`` of model :data:`ADT_MODEL_ID`: ``add`` operations only (valid
+    whether the property is set yet or not). A removal sets ``present`` false and leaves
+    the last pose."""
+    values = _twin_properties(change)
     pose = pose_value(change.pose)
     if pose is not None:
         values["pose"] = pose
@@ -184,18 +191,7 @@ def ditto_merge_patch(change: InstanceChange) -> dict[str, Any]:
     """The JSON merge patch (RFC 7396) of thing :func:`ditto_thing_id` for Ditto's
     ``PATCH /api/2/things/{thingId}``. A removal sets ``attributes.present`` false and
     deletes the ``pose`` feature (``null``)."""
-    attributes: dict[str, Any] = {
-        "objectClass": change.object_class,
-        "environment": change.environment_id,
-        "present": change.present,
-        "changeType": change.change_type,
-        "snapshot": change.snapshot_id,
-        "seq": change.seq,
-        "comparison": change.comparison_id,
-        "changedAt": _time(change.changed_at),
-    }
-    if change.library_object_id is not None:
-        attributes["libraryObject"] = change.library_object_id
+    attributes = _twin_properties(change)
     if change.external_id is not None:
         attributes["externalId"] = change.external_id
     pose = pose_value(change.pose)

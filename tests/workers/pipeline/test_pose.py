@@ -505,9 +505,8 @@ def test_pose_cli(
 
 
 def test_a_cloud_file_without_normals_leaves_their_orientation_to_the_crop(tmp_path: Path) -> None:
-    """Without a viewpoint, normals missing from the file are not guessed towards the origin
-    (a room's origin is no camera: the pose CLI flipped 85 % of a wedge's normals that way
-    and posed it 82° off); with one, they face it."""
+    """Without a viewpoint, normals missing from the file are left to the crop (a room's
+    origin is no camera to orient them towards); with one, they face it."""
     rng = np.random.default_rng(0)
     pts = np.c_[rng.uniform(-1, 1, (500, 2)), np.zeros(500)]
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))

@@ -28,7 +28,7 @@ from tests.e2e.conftest import (
     poll_job,
     wait_until,
 )
-from tests.e2e.test_twin_order import png
+from tests.e2e.test_twin_order import upload
 
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.postgres, pytest.mark.redis]
 
@@ -47,18 +47,6 @@ def library_files(tmp_path: Path) -> dict[str, bytes]:
     sphere = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(on_sphere))
     o3d.io.write_point_cloud(str(tmp_path / "scan.ply"), sphere)
     return {name: (tmp_path / f"{name}.ply").read_bytes() for name in CLASSES}
-
-
-def upload(client: httpx.Client, env_id: str, scene: dict[str, float]) -> str:
-    """A capture of three images whose YOLO boxes put each class at x (the fake pose)."""
-    labels = "".join(f"{CLASSES.index(n)} {x} 0.5 0.1 0.1\n" for n, x in scene.items())
-    files = []
-    for i in range(3):
-        files.append(("images", (f"v{i}.png", png(i), "image/png")))
-        files.append(("detections", (f"v{i}.txt", labels.encode(), "text/plain")))
-    r = client.post(f"/v1/environments/{env_id}/snapshots", files=files)
-    assert r.status_code == 202, r.text
-    return str(r.json()["snapshot"]["id"])
 
 
 def glb(client: httpx.Client, env_id: str, tmp_path: Path, **params: str) -> trimesh.Scene:
@@ -112,7 +100,7 @@ def test_the_twin_as_glb_now_and_then_and_a_cloud_as_laz(
     env_id = client.post("/v1/environments", json={"name": "cell-e", "classes": CLASSES}).json()[
         "id"
     ]
-    snaps = [upload(client, env_id, scene) for scene in SCENES]
+    snaps = [upload(client, env_id, scene, "v", CLASSES) for scene in SCENES]
     wait_until(
         lambda: client.get(f"/v1/environments/{env_id}").json()["twin"]["seq"] == len(SCENES),
         120,

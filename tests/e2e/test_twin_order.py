@@ -48,8 +48,16 @@ def png(seed: int) -> bytes:
     return out.getvalue()
 
 
-def upload(client: httpx.Client, env_id: str, scene: dict[str, float], tag: str) -> str:
-    labels = "".join(f"{CLASSES.index(n)} {x} 0.5 0.1 0.1\n" for n, x in scene.items())
+def upload(
+    client: httpx.Client,
+    env_id: str,
+    scene: dict[str, float],
+    tag: str,
+    classes: list[str] = CLASSES,
+) -> str:
+    """A capture of three images whose YOLO boxes put each class of ``classes`` at x (the
+    fake pose); returns the snapshot id."""
+    labels = "".join(f"{classes.index(n)} {x} 0.5 0.1 0.1\n" for n, x in scene.items())
     files = []
     for i in range(3):
         files.append(("images", (f"{tag}{i}.png", png(i), "image/png")))

@@ -122,6 +122,27 @@ TUNING: tuple[World, ...] = (
         "low_high",
         5,
     ),
+    # the set's lowest objects on the floor: the hammer (3.3 cm) moved, the large clamp
+    # (3.9 cm, 12 × 17 cm) removed; what the seen check and identification of flat
+    # objects are tuned on
+    World(
+        "flat_moved",
+        "moved",
+        ("hammer", "mug", "tomato_soup_can", "power_drill", "large_clamp"),
+        "two_walls",
+        "low_high",
+        6,
+        target="hammer",
+    ),
+    World(
+        "clamp_removed",
+        "removed",
+        ("large_clamp", "power_drill", "mug", "master_chef_can", "extra_large_clamp"),
+        "closed",
+        "ring",
+        7,
+        target="large_clamp",
+    ),
 )
 
 TEST: tuple[World, ...] = (

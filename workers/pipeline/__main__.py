@@ -15,6 +15,7 @@ STAGES: dict[str, str] = {
     "scan": "workers.pipeline.scan.cli",
     "compare": "workers.pipeline.compare.cli",
     "pose": "workers.pipeline.pose.cli",
+    "inventory": "workers.pipeline.inventory.cli",
     "model": "workers.pipeline.model.cli",
     "option-schema": "workers.pipeline.option_schema",
     "option-docs": "workers.pipeline.option_docs",

@@ -1,0 +1,327 @@
+"""The inventory stage: every library object a reconstructed snapshot shows, changed or not.
+
+Steps: the support surfaces (:mod:`~workers.pipeline.inventory.supports`) → the points that
+stand on them (above the support's noise band, below the tallest library object) → the
+compare stage's clustering, re-projection, merging and identification of those points
+(:func:`workers.pipeline.compare.side_clusters.side_clusters`: the same metric and threshold
+as a changed cluster) → the pose stage's estimate and re-projection check of each
+identified segment (:func:`workers.pipeline.pose.posing.pose_change`) → one object per
+instance (two segments of one class closer than ``duplicate_diameters`` are one).
+
+Everything in the environment frame (z up), metres; poses are 4×4 ``env_from_object``.
+Pure: no files, no database; deterministic for given options (their seeds).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from workers.pipeline.compare.clusters import dbscan, groups_from_labels
+from workers.pipeline.compare.data import CaptureData
+from workers.pipeline.compare.results import Change, ClusterResult
+from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
+from workers.pipeline.compare.stage import render_depth_maps
+from workers.pipeline.errors import InputError
+from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptions
+from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
+from workers.pipeline.model import PreparedModel
+from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.posing import pose_change
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+Progress = Callable[[str, float], None]
+
+
+@dataclass(frozen=True, eq=False)
+class InventoryObject:
+    """One library object found in the snapshot.
+
+    ``env_from_object`` (4, 4) metres or None (no prepared model, or registration failed);
+    ``pose_quality`` the pose stage's figures (``verified``, ``reasons``, ``reprojection``
+    ...) or None without a pose; ``identification`` the compare stage's figures of its
+    class (``metric``, ``iou``, ``overlaps``, ``occurrences``); ``centroid_env`` (3,) the
+    posed model's centre (else the segment's); ``support`` the surface it stands on."""
+
+    object_name: str
+    class_id: int
+    env_from_object: FloatArray | None
+    pose_quality: dict[str, Any] | None
+    identification: dict[str, Any]
+    centroid_env: FloatArray
+    cluster: dict[str, Any]
+    support: str | None
+
+    @property
+    def verified(self) -> bool:
+        return bool(self.pose_quality and self.pose_quality.get("verified"))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "object": self.object_name,
+            "class_id": self.class_id,
+            "pose": None if self.env_from_object is None else self.env_from_object.tolist(),
+            "pose_quality": self.pose_quality,
+            "identification": self.identification,
+            "centroid_env": self.centroid_env.tolist(),
+            "cluster": self.cluster,
+            "support": self.support,
+        }
+
+
+@dataclass(frozen=True, eq=False)
+class InventoryResult:
+    """``objects`` found (in segment order); ``rejected`` identified segments left out
+    (with ``reason``); ``supports`` the surfaces found; ``stats`` counts and timings."""
+
+    options: InventoryOptions
+    objects: tuple[InventoryObject, ...]
+    rejected: tuple[dict[str, Any], ...]
+    supports: tuple[Support, ...]
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "options": self.options.to_json(),
+            "objects": [o.to_json() for o in self.objects],
+            "rejected": list(self.rejected),
+            "supports": [s.to_json() for s in self.supports],
+            "stats": dict(self.stats),
+        }
+
+
+def median_spacing_m(points_env: FloatArray, sample: int, seed: int) -> float:
+    """Median nearest-neighbour distance of (N ≥ 2, 3) points, metres, over a seeded
+    sample of at most ``sample`` of them."""
+    rng = np.random.default_rng(seed)
+    pick = points_env
+    if len(points_env) > sample:
+        pick = points_env[rng.choice(len(points_env), sample, replace=False)]
+    d, _ = cKDTree(points_env).query(pick, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def _check(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:
+    if len(set(classes)) != len(classes) or not all(isinstance(c, str) and c for c in classes):
+        raise InputError("classes must be unique non-empty names")
+    for name, d in class_diameters_m.items():
+        if name not in classes:
+            raise InputError(f"library object {name!r} is not one of the classes")
+        if not (np.isfinite(d) and d > 0):
+            raise InputError(f"diameter of {name!r} must be finite and > 0, got {d}")
+
+
+def _standing(
+    points: FloatArray, supports: Sequence[Support], max_height_m: float, o: InventoryOptions
+) -> tuple[IntArray, IntArray | None, IntArray]:
+    """Indices of the points standing on a support (strict band) and of those within the
+    growth band (None: no growth), and each point's support index (−1: none)."""
+    heights, owner = standing_heights(points, list(supports))
+    noise = np.array([s.noise_m for s in supports] + [0.0])[owner]
+    band = np.maximum(o.band_min_m, o.band_sigmas * noise)
+    ok = np.isfinite(heights) & (heights < max_height_m)
+    strict = np.flatnonzero(ok & (heights > band))
+    low = None
+    if o.grow_band_factor > 0:
+        low = np.flatnonzero(ok & (heights > o.grow_band_factor * band))
+    return strict, low, owner
+
+
+def _not_oversized(
+    points: FloatArray, idx: IntArray, radius_m: float, max_extent_m: float, c: Any
+) -> IntArray:
+    """``idx`` less the connected segments longer than ``max_extent_m`` (walls seen near
+    the floor, table and shelf sides): the compare stage's DBSCAN with its settings."""
+    if len(idx) == 0:
+        return idx
+    labels = dbscan(points[idx], radius_m, c.cluster_min_samples, c.cluster_min_points)
+    keep = [
+        idx[g]
+        for g in groups_from_labels(labels)
+        if float(np.max(np.ptp(points[idx[g]], axis=0))) <= max_extent_m
+    ]
+    return np.sort(np.concatenate(keep)) if keep else np.zeros(0, dtype=np.int64)
+
+
+def _segment_json(cluster: ClusterResult) -> dict[str, Any]:
+    return {**cluster.summary_json(), "metrics": dict(cluster.metrics)}
+
+
+def take_inventory(
+    capture: CaptureData,
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    load_model: Callable[[str], PreparedModel],
+    options: InventoryOptions = INVENTORY_PRESETS["default"],
+    progress: Progress | None = None,
+) -> InventoryResult:
+    """Every library object ``capture`` shows (environment frame, z up, metres).
+
+    ``classes[i]`` is detector class id i; ``class_diameters_m`` the diameters of the
+    library objects that have a prepared model (their segments are posed;
+    ``load_model(name)`` is called at most once per class). ``progress(stage, fraction)``
+    may raise Cancelled. Raises ShapeError/InputError for bad inputs.
+    """
+    report: Progress = progress or (lambda _stage, _fraction: None)
+    _check(classes, class_diameters_m)
+    compare_options, pose_options = options.compare_options(), options.pose_options()
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal t0
+        now = time.perf_counter()
+        timings[name] = round(now - t0, 3)
+        t0 = now
+
+    points = capture.points_env
+    max_d = max(class_diameters_m.values(), default=0.0)
+    empty = InventoryResult(options, (), (), (), {"points": len(points), "timings_s": timings})
+    if len(points) < 10 or max_d <= 0:
+        return empty
+    report("inventory.supports", 0.0)
+    supports = find_supports(points, max_d, options)
+    lap("supports")
+    if not supports:
+        return InventoryResult(options, (), (), (), {"points": len(points), "timings_s": timings})
+    strict, low, owner = _standing(points, supports, options.max_height_diameters * max_d, options)
+    spacing = median_spacing_m(points, compare_options.spacing_sample, options.seed)
+    radius = compare_options.cluster_radius_factor * spacing
+    candidates = _not_oversized(
+        points, strict, radius, options.max_extent_diameters * max_d, compare_options
+    )
+    lap("standing")
+    report("inventory.segments", 0.2)
+    maps = render_depth_maps(capture, compare_options)
+    lap("zbuffers")
+    library = Library(
+        classes=list(classes),
+        class_diameters_m=dict(class_diameters_m),
+        grow_max_m=compare_options.grow_max_diameters * max_d,
+    )
+    side = SideInput(
+        side="added",
+        capture=capture,
+        candidates=candidates,
+        low=low,
+        spacing_m=spacing,
+        base_band_m=0.0,
+        depth_maps=maps if compare_options.use_visibility else None,
+        first_id=1,
+    )
+    segments = side_clusters(side, library, compare_options) if len(candidates) else []
+    lap("segments_identify")
+    named = [c for c in segments if c.object_name is not None]
+    report("inventory.pose", 0.4)
+    scene = SceneCloud.create(points, colors=capture.colors) if named else None
+    prepared: dict[str, PreparedModel] = {}
+    found: list[InventoryObject] = []
+    rejected: list[dict[str, Any]] = []
+    for i, cluster in enumerate(named):
+        report("inventory.pose", 0.4 + 0.6 * i / len(named))
+        name = str(cluster.object_name)
+        ident = cluster.identification_json(name)
+        ident.pop("object", None)
+        support_votes = owner[cluster.indices]
+        support_votes = support_votes[support_votes >= 0]
+        support = (
+            supports[int(np.bincount(support_votes).argmax())].name if len(support_votes) else None
+        )
+        pose: dict[str, Any] = {}
+        if name in class_diameters_m and scene is not None:
+            if name not in prepared:
+                prepared[name] = load_model(name)
+            change = Change(
+                id=f"segment-{cluster.id}",
+                type="added",
+                object_name=name,
+                instance_id=None,
+                cluster=cluster,
+            )
+            pose = pose_change(
+                change,
+                prepared[name],
+                scene,
+                capture,
+                list(classes).index(name),
+                maps,
+                pose_options,
+            )
+        quality = pose.get("pose_quality")
+        passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
+        if options.require_reprojection and name in class_diameters_m and not passed:
+            reasons = (quality or {}).get("reasons") or ["no pose"]
+            rejected.append(
+                {
+                    "object": name,
+                    "identification": ident,
+                    "cluster": _segment_json(cluster),
+                    "reason": "; ".join(str(r) for r in reasons),
+                }
+            )
+            continue
+        found.append(
+            InventoryObject(
+                object_name=name,
+                class_id=list(classes).index(name),
+                env_from_object=None if pose.get("pose") is None else np.asarray(pose["pose"]),
+                pose_quality=quality,
+                identification=ident,
+                centroid_env=np.asarray(pose.get("centroid_env", cluster.centroid), float),
+                cluster=_segment_json(cluster),
+                support=support,
+            )
+        )
+    objects, duplicates = _one_per_instance(found, class_diameters_m, options)
+    rejected.extend(duplicates)
+    lap("pose")
+    report("inventory.pose", 1.0)
+    stats = {
+        "points": len(points),
+        "spacing_m": spacing,
+        "standing_points": len(strict),
+        "candidate_points": len(candidates),
+        "segments": len(segments),
+        "identified_segments": len(named),
+        "objects": len(objects),
+        "timings_s": timings,
+    }
+    return InventoryResult(options, tuple(objects), tuple(rejected), tuple(supports), stats)
+
+
+def _rank(obj: InventoryObject) -> tuple[float, float]:
+    return (1.0 if obj.verified else 0.0, float(obj.identification.get("metric", 0.0)))
+
+
+def _one_per_instance(
+    found: Sequence[InventoryObject], diameters: Mapping[str, float], o: InventoryOptions
+) -> tuple[list[InventoryObject], list[dict[str, Any]]]:
+    """Objects of one class closer than ``duplicate_diameters`` × its diameter are one
+    (a split segment): the verified one, else the best identified, is kept."""
+    kept: list[InventoryObject] = []
+    dropped: list[dict[str, Any]] = []
+    for obj in sorted(found, key=_rank, reverse=True):
+        reach = o.duplicate_diameters * diameters.get(obj.object_name, 0.0)
+        twin = next(
+            (
+                k
+                for k in kept
+                if k.object_name == obj.object_name
+                and float(np.linalg.norm(k.centroid_env - obj.centroid_env)) < reach
+            ),
+            None,
+        )
+        if twin is None:
+            kept.append(obj)
+        else:
+            dropped.append({**obj.to_json(), "reason": "duplicate of a better segment"})
+    order = {id(o_): i for i, o_ in enumerate(found)}
+    kept.sort(key=lambda k: order[id(k)])
+    return kept, dropped

@@ -13,7 +13,17 @@ import open3d as o3d
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from app.core import comparisons, environments, events, jobs, objects, snapshots, twin, twin_records
+from app.core import (
+    change_clusters,
+    comparisons,
+    environments,
+    events,
+    jobs,
+    objects,
+    snapshots,
+    twin,
+    twin_records,
+)
 from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, ObjectState
 from app.core.models import Change, SnapshotImage, utcnow
@@ -48,6 +58,7 @@ class ComparisonInputs:
     options: dict[str, Any]
     twin: list[TwinInstance]
     models: dict[str, tuple[str, float, str]]  # class → (object id, diameter m, artifacts key)
+    clusters_key: str  # where the change clusters' points go (app.core.change_clusters)
 
 
 @dataclass
@@ -94,9 +105,11 @@ def _load(ctx: JobContext) -> ComparisonInputs:
         before_seq = snapshots.get(session, comparison.before_id).seq
         state = twin.state_at(session, env.id, before_seq)
         library = objects.by_names(session, list(env.classes))
+        after_prefix = snapshots.get(session, comparison.after_id).storage_prefix
         return ComparisonInputs(
             comparison_id=comparison.id,
             environment_id=env.id,
+            clusters_key=change_clusters.clusters_key(after_prefix, comparison.id),
             before=_capture(session, comparison.before_id),
             after=_capture(session, comparison.after_id),
             classes=list(env.classes),
@@ -174,7 +187,31 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
             progress,
         )
     )
+    _store_clusters(ctx, inputs.clusters_key, result)
     return outcome
+
+
+def _store_clusters(ctx: JobContext, key: str, result: CompareResult) -> None:
+    """The change clusters' points for the console (at most 20 000 a cluster)."""
+    change_of: dict[int, str] = {}
+    for change in result.changes:
+        for cluster in (change.cluster, change.previous_cluster):
+            if cluster is not None:
+                change_of.setdefault(cluster.id, change.id)
+    change_clusters.write(
+        ctx.storage,
+        key,
+        [
+            change_clusters.StoredCluster(
+                id=c.id,
+                side=c.side,
+                change_id=change_of.get(c.id),
+                n_points=c.n_points,
+                points_env=c.points_env,
+            )
+            for c in result.clusters
+        ],
+    )
 
 
 def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> None:

@@ -92,11 +92,19 @@ def _require(scope: Scope) -> Callable[[Request], Awaitable[Principal]]:
     return check
 
 
+async def _any_key(request: Request) -> Principal:
+    known: Principal | None = getattr(request.state, "principal", None)
+    if known is not None:
+        return known
+    return await authenticate_request(request.app, _client(request), bearer(request.headers), None)
+
+
 def _authenticate(token: str | None, scope: Scope | None) -> Principal:
     with get_read_session_factory()() as session:
         return auth.authenticate(session, token, scope)
 
 
+AnyKey = Annotated[Principal, Depends(_any_key)]  # any valid key, whatever its scopes
 ReadKey = Annotated[Principal, Depends(_require(Scope.read))]
 CaptureKey = Annotated[Principal, Depends(_require(Scope.capture))]
 AdminKey = Annotated[Principal, Depends(_require(Scope.admin))]

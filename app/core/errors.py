@@ -33,6 +33,13 @@ class Conflict(DomainError):
     code = "Conflict"
 
 
+class Gone(DomainError):
+    """410: the resource existed and was deleted on purpose (e.g. photos by retention)."""
+
+    status_code = 410
+    code = "Gone"
+
+
 class Unauthorized(DomainError):
     status_code = 401
     code = "Unauthorized"

@@ -41,7 +41,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import events
 from app.core.enums import EventType, SnapshotState
-from app.core.models import InstancePose, Snapshot, TwinInstance, utcnow
+from app.core.models import Change, InstancePose, Snapshot, TwinInstance, utcnow
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from app.main import create_app
@@ -178,6 +178,10 @@ def world(
             data={"comparison": comparison["id"]},
         )
         instance_id = instance.id
+        change = Change(comparison_id=comparison["id"], position=0, type="added")
+        s.add(change)
+        s.flush()
+        change_id = change.id
     [delivery] = _ok(client.get(f"/v1/webhooks/{hook['id']}/deliveries", headers=admin), 200)
     resumable = client.post(
         "/v1/uploads",
@@ -196,6 +200,8 @@ def world(
         "snapshot_id": after,
         "job_id": uploads[1]["job"]["id"],
         "comparison_id": comparison["id"],
+        "change_id": change_id,
+        "name": "a0.jpg",  # an image of the snapshot
         "instance_id": instance_id,
         "webhook_id": hook["id"],
         "delivery_id": delivery["id"],

@@ -4,10 +4,15 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
 
-from app.api.deps import AdminKey, ReadKey, SessionDep
-from app.api.schemas.common import ERRORS, ErrorOut
-from app.api.schemas.comparisons import ComparisonRead
-from app.core import auth, comparisons, twin_records
+from app.api.deps import AdminKey, ReadKey, SessionDep, StorageDep
+from app.api.schemas.common import ERRORS, ErrorOut, conflict
+from app.api.schemas.comparisons import (
+    ChangeViewRead,
+    ClusterPointsRead,
+    ClustersRead,
+    ComparisonRead,
+)
+from app.core import auth, change_views, comparisons, twin_records
 
 router = APIRouter(prefix="/comparisons", tags=["comparisons"], responses=ERRORS)
 
@@ -48,3 +53,63 @@ def retry_comparison(
     comparison = comparisons.retry(session, comparison_id)
     response.headers["Location"] = f"/v1/jobs/{comparison.job_id}"
     return ComparisonRead.of(comparison)
+
+
+_CLUSTERS_CONFLICT = conflict(
+    "ComparisonNotSucceeded: not finished or failed; ClustersNotStored: made before cluster "
+    "points were kept (run it again); ClustersUnreadable: the stored file is damaged"
+)
+
+
+@router.get("/{comparison_id}/clusters", responses=_CLUSTERS_CONFLICT)
+def get_clusters(
+    comparison_id: str, session: SessionDep, storage: StorageDep, key: ReadKey
+) -> ClustersRead:
+    """The change clusters' points (environment frame, metres; at most 20 000 a cluster)
+    with their side and change, for drawing."""
+    comparison = comparisons.get(session, comparison_id)
+    auth.require_environment(
+        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
+    )
+    return ClustersRead(
+        clusters=[
+            ClusterPointsRead(
+                id=c.id,
+                side="added" if c.side == "added" else "removed",
+                change_id=c.change_id,
+                n_points=c.n_points,
+                positions=[round(float(v), 4) for v in c.points_env.reshape(-1)],
+            )
+            for c in change_views.stored_clusters(session, storage, comparison)
+        ]
+    )
+
+
+@router.get(
+    "/{comparison_id}/changes/{change_id}/views",
+    responses=conflict(
+        "ComparisonNotSucceeded, ClustersNotStored, ClustersUnreadable (as for /clusters); "
+        "CamerasUnreadable, PointCloudNotReady, PointCloudUnreadable: the snapshot's "
+        "cameras or cloud cannot be read"
+    ),
+)
+def get_change_views(
+    comparison_id: str, change_id: str, session: SessionDep, storage: StorageDep, key: ReadKey
+) -> list[ChangeViewRead]:
+    """Every photo that saw the change's cluster: the cluster's re-projected outline and
+    box, and the detection of the change's class that overlaps it best with its IoU."""
+    comparison = comparisons.get(session, comparison_id)
+    auth.require_environment(
+        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
+    )
+    return [
+        ChangeViewRead(
+            image=v.image,
+            outline_px=v.outline_px,
+            box_px=v.box_px,
+            detection_box_px=v.detection_box_px,
+            iou=v.iou,
+            counted=v.counted,
+        )
+        for v in change_views.views(session, storage, comparison, change_id)
+    ]

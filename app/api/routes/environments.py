@@ -24,6 +24,7 @@ from app.api.schemas.snapshots import SnapshotRead
 from app.core import (
     auth,
     comparisons,
+    environment_summary,
     environments,
     retention,
     snapshots,
@@ -45,17 +46,17 @@ def create_environment(
 ) -> EnvironmentRead:
     """Create an environment with its detector classes and reference-marker sheet."""
     env = environments.create(session, body.name, body.classes, body.reference, body.options)
-    return EnvironmentRead.of(env, twin.progress(session, env))
+    summary = environment_summary.summaries(session, [env.id])[env.id]
+    return EnvironmentRead.of(env, twin.progress(session, env), summary)
 
 
 @router.get("")
 def list_environments(session: SessionDep, key: ReadKey) -> list[EnvironmentRead]:
-    """Every environment the key reaches."""
-    return [
-        EnvironmentRead.of(e, twin.progress(session, e))
-        for e in environments.list_all(session)
-        if auth.can_reach(key, e.id)
-    ]
+    """Every environment the key reaches, with its twin's object count and its newest
+    snapshot."""
+    reached = [e for e in environments.list_all(session) if auth.can_reach(key, e.id)]
+    summary = environment_summary.summaries(session, [e.id for e in reached])
+    return [EnvironmentRead.of(e, twin.progress(session, e), summary[e.id]) for e in reached]
 
 
 @router.get("/{environment_id}")
@@ -63,7 +64,8 @@ def get_environment(environment_id: str, session: SessionDep, key: ReadKey) -> E
     """One environment."""
     auth.require_environment(key, environment_id)
     env = environments.get(session, environment_id)
-    return EnvironmentRead.of(env, twin.progress(session, env))
+    summary = environment_summary.summaries(session, [env.id])[env.id]
+    return EnvironmentRead.of(env, twin.progress(session, env), summary)
 
 
 @router.delete(

@@ -5,10 +5,11 @@ from __future__ import annotations
 from fastapi import APIRouter, status
 from sqlalchemy import select
 
-from app.api.deps import AdminKey, SessionDep
+from app.api.deps import AdminKey, AnyKey, SessionDep
 from app.api.schemas.common import ERRORS, TOO_LARGE, ErrorOut
-from app.api.schemas.keys import KeyCreate, KeyCreated, KeyRead
+from app.api.schemas.keys import KeyCreate, KeyCreated, KeyCurrent, KeyRead
 from app.core import auth
+from app.core.enums import Scope
 from app.core.errors import NotFound
 from app.core.models import ApiKey
 
@@ -30,6 +31,18 @@ def list_keys(session: SessionDep, _key: AdminKey) -> list[KeyRead]:
     """Every key, without secrets."""
     rows = session.scalars(select(ApiKey).order_by(ApiKey.created_at)).all()
     return [KeyRead.model_validate(r) for r in rows]
+
+
+@router.get("/current")
+def current_key(key: AnyKey) -> KeyCurrent:
+    """The calling key (any scope): its id, name, scopes and environments, so a client can
+    tell whether the key is valid and what it may do."""
+    return KeyCurrent(
+        id=key.key_id,
+        name=key.name,
+        scopes=[Scope(s) for s in key.scopes],
+        environment_ids=None if key.environment_ids is None else list(key.environment_ids),
+    )
 
 
 @router.delete(

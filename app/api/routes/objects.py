@@ -8,9 +8,13 @@ from fastapi import APIRouter, Depends, File, Form, Response, UploadFile, status
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, SettingsDep, StorageDep
 from app.api.schemas.common import ERRORS, MALFORMED, TOO_LARGE, ErrorOut, conflict
+from app.api.schemas.exports import BINARY, GLB_MEDIA_TYPE
 from app.api.schemas.objects import ObjectRead
 from app.core import objects
 from app.core.db import get_read_session_factory
+from app.core.errors import Conflict
+from app.core.export import gltf, twin_scene
+from app.core.export.ply import PlyError
 
 router = APIRouter(prefix="/objects", tags=["objects"], responses=ERRORS)
 
@@ -70,6 +74,42 @@ def get_object(object_id: str, session: SessionDep, _key: ReadKey) -> ObjectRead
     """One library object with its diameter and symmetry."""
     obj = objects.get(session, object_id)
     return ObjectRead.of(obj, objects.latest_job(session, obj.id))
+
+
+@router.get(
+    "/{object_id}/model",
+    response_class=Response,
+    responses={
+        200: {"description": "binary glTF 2.0", "content": {GLB_MEDIA_TYPE: BINARY}},
+        **conflict(
+            "ModelNotReady: the model is not prepared yet; ModelUnreadable: the stored model "
+            "cannot be read"
+        ),
+    },
+)
+def get_object_model(
+    object_id: str, session: SessionDep, storage: StorageDep, _key: ReadKey
+) -> Response:
+    """The library object's model as binary glTF: object frame, metres, +z up as stored (no
+    node transform); a mesh, or points for a cloud model."""
+    obj = objects.get(session, object_id)
+    try:
+        model = twin_scene.load_model(storage, obj)
+    except FileNotFoundError as exc:
+        raise Conflict(
+            f"object {object_id} has no prepared model yet (state {obj.state})",
+            code="ModelNotReady",
+        ) from exc
+    except (PlyError, gltf.ModelGeometryError, OSError) as exc:
+        raise Conflict(
+            f"object {object_id}: the model cannot be read ({exc})", code="ModelUnreadable"
+        ) from exc
+    extras = {"object_id": obj.id, "class": obj.name, "frame": "object, metres, +z up"}
+    return Response(
+        gltf.model_glb(obj.name, model, extras, twin_scene.generator()),
+        media_type=GLB_MEDIA_TYPE,
+        headers={"Cache-Control": "private, max-age=300"},
+    )
 
 
 @router.delete("/{object_id}")

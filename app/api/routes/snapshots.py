@@ -6,7 +6,7 @@ from dataclasses import dataclass
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, File, Header, Query, Request, Response, UploadFile, status
-from fastapi.responses import StreamingResponse
+from fastapi.responses import FileResponse, StreamingResponse
 
 from app.api import negotiate
 from app.api.answers import snapshot_accepted
@@ -19,11 +19,11 @@ from app.api.schemas.exports import (
     PLY_MEDIA_TYPE,
     CloudFormat,
 )
-from app.api.schemas.snapshots import SnapshotAccepted, SnapshotRead
-from app.core import auth, ingest, retention, snapshots
+from app.api.schemas.snapshots import SnapshotAccepted, SnapshotImageRead, SnapshotRead
+from app.core import auth, ingest, retention, snapshot_images, snapshots
 from app.core.db import get_read_session_factory
-from app.core.errors import Conflict
-from app.core.export import laz, twin_scene
+from app.core.errors import Conflict, InvalidInput
+from app.core.export import decimate, laz, twin_scene
 
 router = APIRouter(tags=["snapshots"], responses=ERRORS)
 
@@ -142,8 +142,10 @@ def delete_snapshot(
     response_class=StreamingResponse,
     responses={
         200: {
-            "description": "binary PLY, or LAZ (format=laz or Accept: application/vnd.laszip)",
+            "description": "binary PLY, or LAZ (format=laz or Accept: application/vnd.laszip); "
+            "with max_points: X-Total-Points, the points of the full cloud",
             "content": {PLY_MEDIA_TYPE: BINARY, LAZ_MEDIA_TYPE: BINARY},
+            "headers": {"X-Total-Points": {"schema": {"type": "integer"}}},
         },
         406: {"model": ErrorOut, "description": "Accept allows neither PLY nor LAZ"},
         **conflict(
@@ -163,11 +165,40 @@ def get_pointcloud(
         CloudFormat | None,
         Query(description="ply or laz; overrides Accept (default: by Accept, else ply)"),
     ] = None,
-) -> StreamingResponse:
+    max_points: Annotated[
+        int | None,
+        Query(
+            ge=decimate.MIN_POINTS,
+            le=decimate.MAX_POINTS,
+            description="at most this many points, drawn evenly with a fixed seed (the same "
+            "N gives the same file; a smaller N a subset of a larger): binary little-endian "
+            "PLY, float x y z and uchar red green blue, made once and kept (for a browser)",
+        ),
+    ] = None,
+) -> Response:
     """The reconstructed cloud in the environment frame: binary PLY, coloured, or LAZ
-    (converted once, then kept); 409 until the snapshot is reconstructed."""
+    (converted once, then kept); with ``max_points`` a decimated PLY; 409 until the
+    snapshot is reconstructed."""
     snap = snapshots.get(session, snapshot_id)
     auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
+    if max_points is not None:
+        if not snap.pointcloud_key:
+            raise Conflict(
+                f"snapshot {snapshot_id} has no point cloud (state {snap.state})",
+                code="PointCloudNotReady",
+            )
+        if format == CloudFormat.laz:
+            raise InvalidInput("max_points: a decimated cloud is PLY only; leave out format=laz")
+        cached = decimate.ensure_decimated(storage, snap.pointcloud_key, max_points)
+        return FileResponse(
+            storage.path(cached.key),
+            media_type=PLY_MEDIA_TYPE,
+            filename=f"{snapshot_id}-{cached.n_points}.ply",
+            headers={
+                "X-Total-Points": str(cached.total_points),
+                "Cache-Control": "private, max-age=3600",
+            },
+        )
     chosen = (
         format
         or CLOUD_MEDIA_TYPES[
@@ -196,4 +227,43 @@ def get_pointcloud(
             "Content-Disposition": f'attachment; filename="{snapshot_id}.ply"',
             "Vary": "Accept",
         },
+    )
+
+
+@router.get("/snapshots/{snapshot_id}/images")
+def list_images(
+    snapshot_id: str, session: SessionDep, storage: StorageDep, key: ReadKey
+) -> list[SnapshotImageRead]:
+    """The snapshot's photos by name: size, the camera the reconstruction gave it (K and
+    env_from_cam; null when not registered or not reconstructed yet) and the detector's
+    boxes in pixels."""
+    snap = snapshots.get(session, snapshot_id)
+    auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
+    return [
+        SnapshotImageRead.of(snap.id, photo)
+        for photo in snapshot_images.photos(session, storage, snap)
+    ]
+
+
+@router.get(
+    "/snapshots/{snapshot_id}/images/{name}",
+    response_class=FileResponse,
+    responses={
+        200: {
+            "description": "the photo as uploaded",
+            "content": {"image/jpeg": BINARY, "image/png": BINARY},
+        },
+        410: {"model": ErrorOut, "description": "ImagesDeleted: retention deleted the photos"},
+    },
+)
+def get_image(
+    snapshot_id: str, name: str, session: SessionDep, storage: StorageDep, key: ReadKey
+) -> FileResponse:
+    """One photo's bytes with its media type (404 for a name the snapshot lacks, 410 once
+    the retention policy deleted its photos)."""
+    snap = snapshots.get(session, snapshot_id)
+    auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
+    file_key, media_type = snapshot_images.photo_file(session, storage, snap, name)
+    return FileResponse(
+        storage.path(file_key), media_type=media_type, headers={"Cache-Control": "private"}
     )

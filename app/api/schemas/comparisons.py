@@ -2,7 +2,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from datetime import datetime
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, Field
 
@@ -104,3 +104,35 @@ class ComparisonRead(BaseModel):
             ],
             clusters=c.clusters,
         )
+
+
+class ClusterPointsRead(BaseModel):
+    id: int
+    side: Literal["added", "removed"] = Field(
+        description="added: points of the after cloud; removed: of the before cloud"
+    )
+    change_id: str | None = Field(description="the change it is evidence of, if any")
+    n_points: int = Field(description="the cluster's points in full")
+    positions: list[float] = Field(
+        description="x, y, z, x, y, z, ...: environment frame, metres, 4 decimals; all the "
+        "points, or 20 000 drawn with a fixed seed"
+    )
+
+
+class ClustersRead(BaseModel):
+    clusters: list[ClusterPointsRead]
+
+
+class ChangeViewRead(BaseModel):
+    """One photo that saw the change's cluster (pixels of that photo)."""
+
+    image: str
+    outline_px: list[list[float]] = Field(
+        description="[[u, v], ...]: convex hull of the cluster's projected visible points"
+    )
+    box_px: list[float] = Field(description="[x0, y0, x1, y1]: the cluster's box in the photo")
+    detection_box_px: list[float] | None = Field(
+        description="the photo's detection of the change's class overlapping the box best"
+    )
+    iou: float | None = Field(description="IoU of box_px and detection_box_px")
+    counted: bool = Field(description="the photo counted as an overlap for that class")

@@ -6,7 +6,8 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from app.api.schemas.common import Model, Pose
-from app.core.enums import TwinStatus
+from app.core.enums import SnapshotState, TwinStatus
+from app.core.environment_summary import Summary
 from app.core.models import Environment, TwinInstance
 from app.core.twin import Progress
 
@@ -62,6 +63,15 @@ class TwinProgressRead(BaseModel):
         )
 
 
+class LastSnapshotRead(BaseModel):
+    """The environment's newest snapshot (not deleted)."""
+
+    id: str
+    seq: int
+    state: SnapshotState
+    created_at: datetime
+
+
 class EnvironmentRead(Model):
     id: str
     name: str
@@ -70,9 +80,14 @@ class EnvironmentRead(Model):
     options: dict[str, Any]
     created_at: datetime
     twin: TwinProgressRead
+    twin_object_count: int = Field(description="objects the twin holds now (open instances)")
+    last_snapshot: LastSnapshotRead | None = Field(
+        description="the newest snapshot with its state; null before any"
+    )
 
     @classmethod
-    def of(cls, env: Environment, progress: Progress) -> EnvironmentRead:
+    def of(cls, env: Environment, progress: Progress, summary: Summary) -> EnvironmentRead:
+        last = summary.last_snapshot
         return cls(
             id=env.id,
             name=env.name,
@@ -81,6 +96,15 @@ class EnvironmentRead(Model):
             options=env.options,
             created_at=env.created_at,
             twin=TwinProgressRead.of(progress),
+            twin_object_count=summary.twin_object_count,
+            last_snapshot=None
+            if last is None
+            else LastSnapshotRead(
+                id=last.id,
+                seq=last.seq,
+                state=SnapshotState(last.state),
+                created_at=last.created_at,
+            ),
         )
 
 

@@ -33,3 +33,13 @@ class KeyRead(Model):
 
 class KeyCreated(KeyRead):
     key: str = Field(description="the secret token; shown only in this response")
+
+
+class KeyCurrent(BaseModel):
+    """The calling key: what it may do (``scopes`` as granted; admin implies read, capture
+    and metrics, read implies metrics) and where (``environment_ids``, null: every one)."""
+
+    id: str
+    name: str
+    scopes: list[Scope]
+    environment_ids: list[str] | None

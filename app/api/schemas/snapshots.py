@@ -2,13 +2,15 @@ from __future__ import annotations
 
 from datetime import datetime
 from typing import Any
+from urllib.parse import quote
 
-from pydantic import BaseModel
+from pydantic import BaseModel, Field
 
 from app.api.schemas.common import Model
 from app.api.schemas.jobs import JobRead
 from app.core.enums import SnapshotSource, SnapshotState, TwinUpdate
 from app.core.models import Comparison, Job, Snapshot
+from app.core.snapshot_images import PhotoInfo
 
 
 class SnapshotRead(Model):
@@ -64,3 +66,51 @@ class SnapshotRead(Model):
 class SnapshotAccepted(BaseModel):
     snapshot: SnapshotRead
     job: JobRead
+
+
+class CameraRead(BaseModel):
+    """A registered photo's camera: ``K`` (3×3, pixels) and ``env_from_cam`` (4×4 row-major,
+    metres, OpenCV axes: x right, y down, z forward)."""
+
+    K: list[list[float]]
+    env_from_cam: list[list[float]]
+
+
+class DetectionRead(BaseModel):
+    class_name: str
+    class_id: int
+    box_px: list[float] = Field(description="[x0, y0, x1, y1] pixels of the photo")
+    confidence: float | None
+
+
+class SnapshotImageRead(BaseModel):
+    name: str
+    width: int
+    height: int
+    url: str = Field(description="the photo's bytes (410 once retention deleted the photos)")
+    registered: bool = Field(description="the reconstruction placed its camera")
+    camera: CameraRead | None
+    detections: list[DetectionRead]
+
+    @classmethod
+    def of(cls, snapshot_id: str, photo: PhotoInfo) -> SnapshotImageRead:
+        cam = photo.camera
+        return cls(
+            name=photo.name,
+            width=photo.width,
+            height=photo.height,
+            url=f"/v1/snapshots/{snapshot_id}/images/{quote(photo.name, safe='')}",
+            registered=cam is not None,
+            camera=None
+            if cam is None
+            else CameraRead(K=cam.k.tolist(), env_from_cam=cam.env_from_cam.tolist()),
+            detections=[
+                DetectionRead(
+                    class_name=d.class_name,
+                    class_id=d.class_id,
+                    box_px=list(d.box_px),
+                    confidence=d.confidence,
+                )
+                for d in photo.detections
+            ],
+        )

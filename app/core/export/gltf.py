@@ -120,6 +120,19 @@ def write_glb(
     return doc.glb()
 
 
+def model_glb(name: str, model: ModelGeometry, extras: dict[str, Any], generator: str) -> bytes:
+    """The ``.glb`` bytes of one library model in its own frame: one node ``name`` with no
+    transform, so vertex coordinates are object-frame metres as they are (+z up as the
+    environment, not rotated into glTF's +y up: a client draws it at ``env_from_object``
+    inside its own environment-frame scene)."""
+    doc = _Document()
+    node = doc.add_node({"name": name, "mesh": doc.add_mesh(name, model), "extras": extras})
+    doc.json["scenes"] = [{"name": name, "nodes": [node]}]
+    doc.json["scene"] = 0
+    doc.json["asset"] = {"version": "2.0", "generator": generator}
+    return doc.glb()
+
+
 class _Document:
     """The glTF JSON being built and its binary buffer (every view 4-byte aligned)."""
 

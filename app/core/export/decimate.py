@@ -1,0 +1,167 @@
+"""A snapshot's cloud at a size a browser draws: at most N points, binary PLY, cached on disk.
+
+The points kept are a uniformly random subset drawn with a fixed seed: point i of the cloud is
+kept when its rank in one fixed random permutation of the cloud (seed :data:`SEED`) is below
+N. So the same N always gives the same file, a smaller N gives a subset of a larger one (a
+level of detail), and every part of the cloud keeps the same share of its points (even in
+space wherever the cloud is, which the reconstruction's voxel fusion already makes even).
+
+The file is ``float x, y, z`` (environment frame, metres) and ``uchar red, green, blue``,
+little-endian, 15 bytes a point, kept in file order. A cloud without colours gets
+:data:`GREY`. It is written once per N beside the cloud
+(``.../reconstruction/decimated/<N>.ply``, so it goes when the snapshot's files go), under
+a private name renamed into place; a cached file older than the cloud is made again.
+
+The cloud is read by memory map (binary PLY: only the kept records' pages are touched) or
+chunk by chunk (ASCII), so its size is limited by the disk, not by memory for the whole.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import uuid
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.core.errors import Conflict, InsufficientStorage
+from app.core.export.ply import PlyError, colors_of, iter_vertices, read_header
+from app.core.storage import LocalStorage
+
+SEED = 20
+MIN_POINTS = 1_000
+MAX_POINTS = 5_000_000
+GREY = 180  # the colour of a cloud that has none
+RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+
+
+@dataclass(frozen=True)
+class Decimated:
+    """The cached file's storage ``key``, the points in it and in the whole cloud."""
+
+    key: str
+    n_points: int
+    total_points: int
+
+
+def decimated_key(pointcloud_key: str, n_points: int) -> str:
+    """The cache key of the ``n_points`` version of the cloud at ``pointcloud_key``."""
+    return str(PurePosixPath(pointcloud_key).parent / "decimated" / f"{n_points}.ply")
+
+
+def kept_mask(total: int, n_points: int, seed: int = SEED) -> NDArray[np.bool_]:
+    """(total,) which points a cloud of ``total`` keeps at ``n_points`` (all when
+    ``n_points`` ≥ ``total``): those whose rank in the seeded permutation is < n_points."""
+    if n_points >= total:
+        return np.ones(total, dtype=bool)
+    rank = np.random.default_rng(seed).permutation(total)
+    return rank < n_points
+
+
+def ply_header(n_points: int, comment: str = "") -> bytes:
+    """The header of a decimated file of ``n_points`` points."""
+    lines = ["ply", "format binary_little_endian 1.0"]
+    if comment:
+        lines.append(f"comment {comment}")
+    lines += [
+        f"element vertex {n_points}",
+        "property float x",
+        "property float y",
+        "property float z",
+        "property uchar red",
+        "property uchar green",
+        "property uchar blue",
+        "end_header",
+    ]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def total_points(storage: LocalStorage, pointcloud_key: str) -> int:
+    """Points in the stored cloud (its header's vertex count); 409 PointCloudUnreadable
+    when the header cannot be read."""
+    try:
+        return read_header(storage.path(pointcloud_key))[1].count
+    except PlyError as exc:
+        raise Conflict(str(exc), code="PointCloudUnreadable") from exc
+
+
+def ensure_decimated(storage: LocalStorage, pointcloud_key: str, max_points: int) -> Decimated:
+    """The cached decimated cloud of at most ``max_points`` points of the PLY at
+    ``pointcloud_key``, made first unless a file at least as new as the cloud is there.
+    Conflict (409 ``PointCloudUnreadable``) when the cloud cannot be read;
+    InsufficientStorage (507) when the disk is full."""
+    total = total_points(storage, pointcloud_key)
+    n = min(max_points, total)
+    key = decimated_key(pointcloud_key, n)
+    source, target = storage.path(pointcloud_key), storage.path(key)
+    if _fresh(source, target):
+        return Decimated(key, n, total)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    part = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
+    try:
+        with source.open("rb") as lock:
+            # one writer per cloud at a time (flock on the PLY: processes of this host);
+            # whoever waited finds the file made. The rename alone keeps the file whole.
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if not _fresh(source, target):
+                records = decimate(source, n)
+                with part.open("wb") as out:
+                    out.write(ply_header(len(records), f"twindelta: {n} of {total} points"))
+                    out.write(records.tobytes())
+                os.replace(part, target)
+    except PlyError as exc:
+        raise Conflict(str(exc), code="PointCloudUnreadable") from exc
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise InsufficientStorage(
+                "the server's storage is full: the decimated cloud could not be written, "
+                "try again later"
+            ) from exc
+        raise
+    finally:
+        part.unlink(missing_ok=True)
+    return Decimated(key, n, total)
+
+
+def decimate(path: Path, n_points: int) -> NDArray[np.void]:
+    """The kept points (:func:`kept_mask`) of the PLY at ``path`` as :data:`RECORD` records
+    in file order. PlyError when the file is not a readable point cloud."""
+    header, vertex = read_header(path)
+    keep = kept_mask(vertex.count, n_points)
+    if header.fmt != "ascii":
+        records = np.memmap(
+            path,
+            dtype=np.dtype(header.fields(vertex)),
+            mode="r",
+            offset=header.header_bytes,
+            shape=(vertex.count,),
+        )
+        return _records(records[np.flatnonzero(keep)])
+    parts, start = [], 0
+    for chunk in iter_vertices(path):
+        parts.append(_records(chunk[keep[start : start + len(chunk)]]))
+        start += len(chunk)
+    return np.concatenate(parts) if parts else np.empty(0, RECORD)
+
+
+def _records(vertices: NDArray[np.void]) -> NDArray[np.void]:
+    out = np.empty(len(vertices), RECORD)
+    for axis in ("x", "y", "z"):
+        out[axis] = vertices[axis]
+    colors = colors_of(vertices)
+    rgb = (
+        np.full((len(vertices), 3), GREY, np.uint8)
+        if colors is None
+        else np.clip(np.rint(colors * 255.0), 0, 255).astype(np.uint8)
+    )
+    out["r"], out["g"], out["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    return out
+
+
+def _fresh(source: Path, target: Path) -> bool:
+    """Whether ``target`` exists and is at least as new as ``source``."""
+    return target.exists() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns

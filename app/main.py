@@ -15,6 +15,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from app.api import metrics as metrics_routes
+from app.api.console import ConsoleFiles
 from app.api.json_guard import JsonGuard
 from app.api.limits import BodyGuard
 from app.api.routes import (
@@ -142,4 +143,5 @@ def create_app() -> FastAPI:
     )
     for module in routers:
         app.include_router(module.router, prefix="/v1")
+    app.mount("/ui", ConsoleFiles(get_settings().resolved_console_dir), name="console")
     return app

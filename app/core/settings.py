@@ -106,6 +106,10 @@ class Settings(BaseSettings):
     retention_interval_s: float = Field(default=3600.0, gt=0)
     stale_files_after_s: float = Field(default=24 * 3600.0, gt=0)
 
+    # The operator console's built files, served at /ui/ (make console builds them); default
+    # the repository's console/dist.
+    console_dir: Path | None = None
+
     @field_validator("secret_key")
     @classmethod
     def _refuse_placeholder_secret_key(cls, value: SecretStr | None) -> SecretStr | None:
@@ -159,6 +163,12 @@ class Settings(BaseSettings):
     def broker_dir(self) -> Path:
         """Folder of the file-system broker's messages (embedded mode only)."""
         return (self.data_dir / "broker").resolve()
+
+    @property
+    def resolved_console_dir(self) -> Path:
+        return (
+            self.console_dir or Path(__file__).resolve().parents[2] / "console" / "dist"
+        ).resolve()
 
     @property
     def resolved_storage_dir(self) -> Path:

@@ -167,7 +167,7 @@ def drop_unseen_removed(
     """
     if not (options.check_seen_removed and maps_after is not None):
         return removed
-    tol = (options.depth_tolerance_m, options.depth_tolerance_px)
+    tol = (options.seen_tolerance_m, options.seen_tolerance_px)
     seen = seen_empty_counts(before.points_env[removed.found], maps_after, *tol)
     return dataclasses.replace(removed, found=removed.found[seen >= options.min_seen_views])
 
@@ -197,7 +197,7 @@ def unevidenced_added(
     if not unknown:
         return unevidenced
     # one pass over the cameras for all of them
-    tol = (options.depth_tolerance_m, options.depth_tolerance_px)
+    tol = (options.seen_tolerance_m, options.seen_tolerance_px)
     seen = seen_empty_counts(after.points_env[np.concatenate(strict)], maps_before, *tol)
     owner = np.repeat(np.arange(len(unknown)), [len(idx) for idx in strict])
     n_seen = np.bincount(owner[seen >= options.min_seen_views], minlength=len(unknown))

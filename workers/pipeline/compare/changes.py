@@ -8,6 +8,8 @@ Order of decisions (all pairings are optimal assignments, Hungarian, on centroid
 3. *swapped*: a leftover removed and a leftover added cluster of different classes whose
    centroids are < ``swap_distance_factor × max(diameters)`` apart (about the same place);
 4. leftovers: *added* (a new instance id) and *removed*;
+   (an identified cluster the other capture's detector still names at its place is
+   left out of steps 3 and 4: a hole in one reconstruction, not a change);
 5. unidentified clusters of at least ``unidentified_min_points`` points found at the strict
    threshold (growth does not count) are reported as ``unidentified`` changes, never
    dropped; they all stay in the clusters table.
@@ -237,15 +239,22 @@ def classify_changes(
     options: CompareOptions,
     new_id: Callable[[], str],
     not_changes: Collection[int] = (),
+    still_there: Collection[int] = (),
 ) -> list[Change]:
     """Changes from identified clusters and the twin state (see module docstring).
     ``not_changes``: ids of unidentified clusters without evidence of a change (kept in
-    the clusters table, not reported)."""
+    the clusters table, not reported); ``still_there``: ids of identified clusters the
+    other capture's detector still names at their place: they may pair as a move, but
+    are neither swapped nor reported alone."""
     added = [c for c in clusters if c.side == "added" and c.object_name is not None]
     removed = [c for c in clusters if c.side == "removed" and c.object_name is not None]
     closes = _close_instances(removed, twin, class_diameters_m, options)
     found = _Identified(added=added, removed=removed, closes=closes)
     moved = _moved(found, options, new_id)
+    # the still-there clusters count as used from here on: no swap, no leftover
+    held_r = {i for i, c in enumerate(removed) if c.id in still_there}
+    held_a = {i for i, c in enumerate(added) if c.id in still_there}
+    moved = _Paired(moved.changes, moved.removed_used | held_r, moved.added_used | held_a)
     swapped = _swapped(found, moved, class_diameters_m, options, new_id)
     used_r = moved.removed_used | swapped.removed_used
     used_a = moved.added_used | swapped.added_used

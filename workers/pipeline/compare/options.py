@@ -24,7 +24,9 @@ StatsRegion = Literal["overlap", "all"]
 class ThresholdSpec:
     """How a side's change threshold is chosen (distances in metres).
 
-    - ``mean_std``: mean + k·std of the side's C2C distances (the thesis: k ∈ {0, .5, 1, 1.5}).
+    - ``mean_std``: mean + k·std of the side's C2C distances (the thesis: k ∈ {0, .5, 1, 1.5}),
+      with ``clip`` over the distances up to median + clip·1.4826·MAD only, so that one
+      large change (a column, 10 % of the points) cannot lift it above smaller ones.
     - ``fixed``: ``distance``.
     - ``lod``: level of detection from roughness, spacing and registration,
       ``sqrt(z²(σ_q² + σ_r²) + (spacing_factor·s_r)²) + registration`` (see thresholds.py);
@@ -37,6 +39,8 @@ class ThresholdSpec:
     kind: ThresholdKind = "mean_std"
     # mean_std: standard deviations above the mean; lower to catch smaller changes
     k: float = 1.0
+    # mean_std: leave out distances above median + clip × 1.4826 × MAD (None: keep all)
+    clip: float | None = None
     # fixed: the threshold, metres
     distance: float = 0.02
     # lod: normal quantile of the noise term (1.96: 95 %)
@@ -55,11 +59,15 @@ class ThresholdSpec:
             raise InputError("a fixed threshold needs distance > 0")
         if self.neighbours < 4:
             raise InputError("lod threshold needs neighbours ≥ 4")
+        if self.clip is not None and not self.clip > 0:
+            raise InputError("a mean_std threshold's clip must be > 0 or null")
 
     def to_json(self) -> dict[str, Any]:
         """The contract's short form, e.g. ``{"kind": "mean_std", "k": 1.0}``."""
         if self.kind == "mean_std":
-            return {"kind": "mean_std", "k": self.k}
+            if self.clip is None:
+                return {"kind": "mean_std", "k": self.k}
+            return {"kind": "mean_std", "k": self.k, "clip": self.clip}
         if self.kind == "fixed":
             return {"kind": "fixed", "distance": self.distance}
         return {
@@ -142,6 +150,10 @@ class CompareOptions:
     box_percentile: float = 0.5
     # a cluster is visible in an image when at least this many of its points are
     min_visible_points: int = 8
+    # a visible cluster counts as an occurrence in an image only where its box has at
+    # least this area, pixels² (where the detector could fire); set near the detector's
+    # smallest box
+    min_box_area_px: float = 0.0
     # not seen is not changed
     # a removed candidate counts only where the after capture saw empty space
     check_seen_removed: bool = True
@@ -151,6 +163,12 @@ class CompareOptions:
     min_seen_views: int = 2
     # share of an unidentified added cluster's points that must be seen as empty
     min_seen_fraction: float = 0.5
+    # a place is seen empty where the other capture's surface lies this far behind the
+    # point, metres (plus seen_tolerance_px); lower to see flat objects go, raise for
+    # noisy clouds
+    seen_tolerance_m: float = 0.02
+    # extra seen-check tolerance: the depth span of this many z-buffer pixels
+    seen_tolerance_px: float = 2.0
     # reporting
     # smallest unidentified cluster reported as a change, points (~5 × 5 cm at 2.5 mm spacing)
     unidentified_min_points: int = 300
@@ -170,6 +188,13 @@ class CompareOptions:
     moved_max_distance: float = 5.0
     # a swap's clusters lie closer than this × the larger of the two diameters
     swap_distance_factor: float = 0.5
+    # a removed cluster the detector does not name takes the class of the twin instance it
+    # lies on when that class scores at least this metric (None: off)
+    twin_identify_threshold: float | None = None
+    # an identified cluster left as a plain addition or removal is no change when the
+    # other capture's detector names its class at its place with at least this metric
+    # (a hole in one reconstruction); None: off
+    still_there_metric: float | None = None
     # a removed cluster closes a twin instance within this × its class diameter
     instance_match_factor: float = 1.0
     # smallest reach of that match, metres (instance_match_factor × diameter if larger)
@@ -203,6 +228,7 @@ class CompareOptions:
             raise InputError("option box_percentile must be in [0, 50)")
         if not 0.0 <= self.min_seen_fraction <= 1.0:
             raise InputError("option min_seen_fraction must be in [0, 1]")
+        self._check_evidence_options()
         if isinstance(self.threshold, Mapping):
             object.__setattr__(self, "threshold", ThresholdSpec.from_json(self.threshold))
         if isinstance(self.grow_threshold, Mapping):
@@ -218,6 +244,17 @@ class CompareOptions:
             raise InputError("option skirt_width_factor must be ≥ 0")
         if not (self.skirt_radius_factor > 0 and self.skirt_rise_m > 0):
             raise InputError("options skirt_radius_factor and skirt_rise_m must be > 0")
+
+    def _check_evidence_options(self) -> None:
+        """Ranges of the occurrence, seen-check and cross-evidence options."""
+        if not self.min_box_area_px >= 0:
+            raise InputError("option min_box_area_px must be ≥ 0")
+        if not (self.seen_tolerance_m >= 0 and self.seen_tolerance_px >= 0):
+            raise InputError("options seen_tolerance_m and seen_tolerance_px must be ≥ 0")
+        for name in ("twin_identify_threshold", "still_there_metric"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 < value <= 1.0:
+                raise InputError(f"option {name} must be in (0, 1] or null")
 
     def to_json(self) -> dict[str, Any]:
         """Plain JSON values; ``threshold`` in its short form."""

@@ -108,8 +108,10 @@ def visible_pixels(
     return pixels
 
 
-def _boxes(pixels: ImagePixels, percentile: float) -> ImageBoxes:
-    return {i: box_from_pixels(p, percentile) for i, p in pixels.items()}
+def _boxes(pixels: ImagePixels, percentile: float, min_area_px: float = 0.0) -> ImageBoxes:
+    """Each image's box of the pixels, where its area is at least ``min_area_px``."""
+    boxes = {i: box_from_pixels(p, percentile) for i, p in pixels.items()}
+    return {i: b for i, b in boxes.items() if (b[2] - b[0]) * (b[3] - b[1]) >= min_area_px}
 
 
 def _detections(capture: CaptureData) -> list[tuple[FloatArray, IntArray]]:
@@ -266,6 +268,6 @@ def side_clusters(
         return []
     dets = _detections(side.capture)
     merged = _merge_and_grow(groups, side, dets, library, options)
-    boxes = [_boxes(p, options.box_percentile) for p in merged.pixels]
+    boxes = [_boxes(p, options.box_percentile, options.min_box_area_px) for p in merged.pixels]
     table = identify(boxes, dets, library.classes)
     return _cluster_results(side, merged, boxes, table, library.classes, options)

@@ -31,6 +31,7 @@ from workers.pipeline.compare.candidates import (
 )
 from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.evidence import name_by_twin, still_there
 from workers.pipeline.compare.options import PRESETS, CompareOptions
 from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
@@ -196,6 +197,7 @@ def compare_snapshots(
     reach_m = options.grow_max_diameters * max(class_diameters_m.values(), default=0.0)
     library = Library(classes=classes, class_diameters_m=class_diameters_m, grow_max_m=reach_m)
     clusters = _both_sides_clusters(before, after, candidates, clouds, maps, library, options)
+    clusters = name_by_twin(clusters, twin, class_diameters_m, options)
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)
@@ -203,9 +205,16 @@ def compare_snapshots(
     unevidenced = unevidenced_added(
         clusters, c2c.added, threshold_added, after, maps.before, options
     )
+    there = still_there(clusters, before, after, maps.before, maps.after, classes, options)
     try:
         changes = classify_changes(
-            clusters, twin, class_diameters_m, options, make_id, not_changes=unevidenced
+            clusters,
+            twin,
+            class_diameters_m,
+            options,
+            make_id,
+            not_changes=unevidenced,
+            still_there=there,
         )
     except ValueError as exc:  # linear_sum_assignment on degenerate input
         raise ComparisonError(f"could not pair changes: {exc}") from exc

@@ -111,6 +111,15 @@ def lod_threshold(
     return float(np.sqrt(noise + sampling) + registration_m)
 
 
+def clipped(distances: FloatArray, clip: float) -> FloatArray:
+    """The (N,) distances at most median + ``clip`` × 1.4826 × MAD (a robust σ): the bulk
+    of unchanged surface without the tail of large changes. Never empty."""
+    median = float(np.median(distances))
+    mad = float(np.median(np.abs(distances - median)))
+    kept = distances[distances <= median + clip * 1.4826 * mad]
+    return kept if kept.size else distances
+
+
 def distance_stats(
     distances: ArrayLike,
     spec: ThresholdSpec,
@@ -128,7 +137,8 @@ def distance_stats(
         raise ComparisonError("no distances to threshold")
     mean, std = float(d.mean()), float(d.std())
     if spec.kind == "mean_std":
-        thr = mean + spec.k * std
+        kept = d if spec.clip is None else clipped(d, spec.clip)
+        thr = float(kept.mean()) + spec.k * float(kept.std())
     elif spec.kind == "fixed":
         thr = float(spec.distance)
     else:

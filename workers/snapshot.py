@@ -1,7 +1,9 @@
 """The snapshot job: re-read the upload (image sizes, detections) → reconstruct the cloud
-in the environment frame → record quality → move the twin's chain on (app.core.twin.advance:
-the automatic comparison with the newest earlier reconstructed snapshot, once every earlier
-snapshot is settled)."""
+in the environment frame → take its inventory (every library object it shows, posed:
+workers.pipeline.inventory) → record quality and inventory → move the twin's chain on
+(app.core.twin.advance: the first snapshot fills the twin from its inventory; later ones
+wait for the automatic comparison with the newest earlier reconstructed snapshot, once
+every earlier snapshot is settled)."""
 
 from __future__ import annotations
 
@@ -9,13 +11,19 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from sqlalchemy.orm import Session
 
-from app.core import environments, events, ingest, snapshots, twin
+from app.core import environments, events, ingest, inventory, objects, snapshots, twin
 from app.core.db import transaction
-from app.core.enums import EventType, SnapshotSource, SnapshotState
+from app.core.enums import EventType, ObjectState, SnapshotSource, SnapshotState
 from app.core.models import utcnow
 from workers import scan_snapshot
+from workers.pipeline.compare.data import CaptureData
+from workers.pipeline.compare.files import cameras_from_file, load_cloud, read_cameras_file
+from workers.pipeline.errors import Cancelled, PipelineError
+from workers.pipeline.inventory import inventory_options_from_json, take_inventory
+from workers.pipeline.model import load_prepared
 from workers.pipeline.reconstruct.cameras import load_cameras
 from workers.pipeline.reconstruct.options import options_from_preset
 from workers.pipeline.reconstruct.stage import ReconstructionResult, reconstruct
@@ -39,6 +47,7 @@ STAGE_WEIGHTS = {
     "fusion": 8,
     "alignment": 3,
     "write": 1,
+    "inventory": 10,
 }
 
 
@@ -52,6 +61,18 @@ class SnapshotInputs:
     options: dict[str, Any]
     previous_cloud_key: str | None
     source: SnapshotSource = SnapshotSource.photos
+    # class → (diameter m, artifacts key) of the library objects ready to pose
+    models: dict[str, tuple[float, str]] | None = None
+    inventory_options: dict[str, Any] | None = None
+
+
+@dataclass(frozen=True)
+class Inventory:
+    """The inventory stage's ``objects`` JSON and its summary (supports, stats, rejected
+    segments, or the error that stopped it)."""
+
+    objects: list[dict[str, Any]]
+    summary: dict[str, Any]
 
 
 def run(job_id: str) -> str:
@@ -67,6 +88,7 @@ def _load(ctx: JobContext) -> SnapshotInputs:
         env = environments.get(session, snap.environment_id)
         snap.state = SnapshotState.processing
         previous = snapshots.latest_reconstructed_before(session, snap)
+        library = objects.by_names(session, list(env.classes))
         return SnapshotInputs(
             snapshot_id=snap.id,
             environment_id=env.id,
@@ -76,13 +98,24 @@ def _load(ctx: JobContext) -> SnapshotInputs:
             options=dict(env.options.get("reconstruct", {})),
             previous_cloud_key=previous.pointcloud_key if previous else None,
             source=SnapshotSource(snap.source),
+            models={
+                name: (float(obj.diameter_m), obj.artifacts_key)
+                for name, obj in library.items()
+                if obj.state == ObjectState.ready and obj.diameter_m and obj.artifacts_key
+            },
+            inventory_options=dict(env.options.get("inventory", {})),
         )
 
 
-def _compute(ctx: JobContext) -> tuple[SnapshotInputs, ReconstructionResult]:
+Outcome = tuple[SnapshotInputs, ReconstructionResult, Inventory | None]
+
+
+def _compute(ctx: JobContext) -> Outcome:
     inputs = _load(ctx)
     if inputs.source == SnapshotSource.scan:  # a laser scan: read, not reconstructed
-        return inputs, scan_snapshot.compute(ctx, inputs.prefix, inputs.reference, inputs.options)
+        # no photos, so no detector boxes to identify objects by: no inventory
+        scanned = scan_snapshot.compute(ctx, inputs.prefix, inputs.reference, inputs.options)
+        return inputs, scanned, None
     progress = weighted(ctx.progress, STAGE_WEIGHTS)
     progress("ingest", 0.0)
     records = ingest.read_capture(ctx.storage, inputs.prefix, inputs.classes, ctx.settings)
@@ -103,13 +136,61 @@ def _compute(ctx: JobContext) -> tuple[SnapshotInputs, ReconstructionResult]:
         ),
         progress=progress,
     )
-    return inputs, result
+    return inputs, result, _inventory(ctx, inputs, result, records, progress)
 
 
-def _persist(
-    session: Session, ctx: JobContext, outcome: tuple[SnapshotInputs, ReconstructionResult]
-) -> None:
-    inputs, result = outcome
+def _inventory(
+    ctx: JobContext,
+    inputs: SnapshotInputs,
+    result: ReconstructionResult,
+    records: list[ingest.ImageRecord],
+    progress: Any,
+) -> Inventory:
+    """Every library object the reconstruction shows (workers.pipeline.inventory). A
+    pipeline failure here leaves the reconstruction good: the summary carries the error
+    and the inventory is empty; bad options fail the job (InputError)."""
+    options = inventory_options_from_json(inputs.inventory_options)
+    models = inputs.models or {}
+    if not models:
+        return Inventory([], {"skipped": "no library object of the classes is ready"})
+    points, colors = load_cloud(result.cloud_path)
+    capture = CaptureData(
+        points_env=points,
+        cameras=cameras_from_file(read_cameras_file(result.cameras_path), "cameras.json"),
+        detections={
+            r.name: np.asarray(
+                [
+                    [d["class_id"], d["cx"], d["cy"], d["w"], d["h"], d.get("confidence") or 1.0]
+                    for d in r.detections
+                ],
+                dtype=np.float64,
+            ).reshape(-1, 6)
+            for r in records
+        },
+        colors=colors,
+    )
+    try:
+        found = take_inventory(
+            capture,
+            inputs.classes,
+            {name: diameter for name, (diameter, _) in models.items()},
+            lambda name: load_prepared(ctx.storage.path(models[name][1])),
+            options,
+            progress,
+        )
+    except Cancelled:
+        raise
+    except PipelineError as exc:
+        return Inventory([], {"error": {"code": exc.code, "detail": exc.detail}})
+    data = found.to_json()
+    return Inventory(
+        data["objects"],
+        {k: data[k] for k in ("supports", "stats", "rejected")},
+    )
+
+
+def _persist(session: Session, ctx: JobContext, outcome: Outcome) -> None:
+    inputs, result, found = outcome
     out = f"{inputs.prefix}/reconstruction"
     ctx.storage.delete_prefix(out)
     for name, path in (("cloud.ply", result.cloud_path), ("cameras.json", result.cameras_path)):
@@ -120,6 +201,8 @@ def _persist(
     snap.pointcloud_key = f"{out}/cloud.ply"
     snap.cameras_key = f"{out}/cameras.json"
     snap.reconstructed_at = utcnow()
+    if found is not None:
+        inventory.record(session, snap, found.objects, found.summary)
     session.flush()
     events.record(
         session,

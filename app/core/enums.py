@@ -93,6 +93,8 @@ class TwinEdit(StrEnum):
     seeded = "seeded"  # created from the twin platform's own list (POST .../objects)
     corrected = "corrected"  # pose, class or external id set by hand (PATCH)
     retired = "retired"  # closed by hand (DELETE)
+    inventoried = "inventoried"  # found by a snapshot's inventory (app.core.inventory)
+    drifted = "drifted"  # an inventory's pose moved beyond the estimate's noise
 
 
 class EventType(StrEnum):

@@ -173,6 +173,9 @@ class Snapshot(Base):
     twin_update: Mapped[str | None] = mapped_column(String(20))
     # set when retention deleted the photos (the cloud, cameras and detections stay)
     images_deleted_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
+    # the inventory's summary (supports, counts, timings, rejected segments); None: no
+    # inventory taken (not reconstructed yet, a scan, or no library object ready)
+    inventory: Mapped[Json | None] = mapped_column(JSON)
 
     images: Mapped[list[SnapshotImage]] = relationship(
         back_populates="snapshot", order_by="SnapshotImage.name", cascade="all, delete-orphan"
@@ -342,6 +345,35 @@ class InstancePose(Base):
     change_type: Mapped[str] = mapped_column(String(20))
     pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
     centroid_env: Mapped[list[float] | None] = mapped_column(JSON)
+    created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
+
+
+class SnapshotObject(Base):
+    """One library object a snapshot's inventory found (workers/pipeline/inventory), with
+    the twin instance it was taken for (None until the twin reached the snapshot, or when
+    the twin did not take it)."""
+
+    __tablename__ = "snapshot_objects"
+
+    id: Mapped[str] = mapped_column(String(36), primary_key=True, default=new_id)
+    snapshot_id: Mapped[str] = mapped_column(
+        ForeignKey("snapshots.id", ondelete="CASCADE"), index=True
+    )
+    position: Mapped[int] = mapped_column(Integer)
+    object_name: Mapped[str] = mapped_column(String(200))
+    object_id: Mapped[str | None] = mapped_column(
+        ForeignKey("library_objects.id", ondelete="SET NULL")
+    )
+    # 4×4 env_from_object, metres; None when the class has no prepared model
+    pose: Mapped[list[list[float]] | None] = mapped_column(JSON)
+    pose_quality: Mapped[Json | None] = mapped_column(JSON)
+    # the compare stage's figures of its class: metric, iou, overlaps, occurrences
+    identification: Mapped[Json] = mapped_column(JSON)
+    centroid_env: Mapped[list[float]] = mapped_column(JSON)
+    support: Mapped[str | None] = mapped_column(String(50))
+    instance_id: Mapped[str | None] = mapped_column(
+        ForeignKey("twin_instances.id", ondelete="SET NULL"), index=True
+    )
     created_at: Mapped[datetime] = mapped_column(UtcDateTime, default=utcnow)
 
 

@@ -31,7 +31,7 @@ from typing import Any
 from sqlalchemy import func, or_, select
 from sqlalchemy.orm import Session, aliased
 
-from app.core import comparisons, events
+from app.core import comparisons, events, inventory
 from app.core.enums import (
     ChangeType,
     ComparisonState,
@@ -53,7 +53,7 @@ from app.core.models import (
     new_id,
     utcnow,
 )
-from app.core.twin_records import changed_instances
+from app.core.twin_records import changed_instances, inventoried_instances
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,7 @@ def advance(session: Session, environment_id: str) -> Progress:
             env.twin_blocked_by = None
             return _progress(env, TwinStatus.reconstructing, head)
         if env.twin_snapshot_id is None:
-            _settle(session, env, head, TwinUpdate.baseline, None)
+            _baseline(session, env, head)
             continue
         comparison = _automatic_comparison(session, head, env.twin_snapshot_id)
         if comparison is None:
@@ -110,7 +110,7 @@ def advance(session: Session, environment_id: str) -> Progress:
                 # earlier one that is still there
                 env.twin_snapshot_id = _newest_reconstructed_before(session, head)
                 if env.twin_snapshot_id is None:
-                    _settle(session, env, head, TwinUpdate.baseline, None)
+                    _baseline(session, env, head)
                     continue
                 before = session.get(Snapshot, env.twin_snapshot_id)
             assert before is not None
@@ -252,6 +252,13 @@ def _newest_reconstructed_before(session: Session, snap: Snapshot) -> str | None
     )
 
 
+def _baseline(session: Session, env: Environment, head: Snapshot) -> None:
+    """The first snapshot the twin reflects: its inventory fills the twin
+    (:func:`app.core.inventory.fill_baseline`)."""
+    inventory.fill_baseline(session, env, head)
+    _settle(session, env, head, TwinUpdate.baseline, None)
+
+
 def _skip(
     session: Session,
     env: Environment,
@@ -293,6 +300,16 @@ def _settle(
     }
     if reason is not None:
         data["reason"] = reason
+    if outcome == TwinUpdate.baseline:
+        data["instances"] = [
+            {
+                "instance_id": instance.id,
+                "external_id": instance.external_id,
+                "change_type": record.change_type,
+                "present": True,
+            }
+            for record, instance in inventoried_instances(session, head.id)
+        ]
     if comparison is not None:
         data["links"]["comparison"] = f"/v1/comparisons/{comparison.id}"
         data["instances"] = [
@@ -332,6 +349,7 @@ def _apply(session: Session, env: Environment, head: Snapshot, comparison: Compa
         if change.object_name and change.object_id
     }
     apply_changes(session, env.id, head.id, comparison.id, changes, object_ids)
+    inventory.confirm(session, env, head, comparison.id)
     comparison.applied_to_state = True
     comparison.applied_at = utcnow()
     _settle(session, env, head, TwinUpdate.applied, comparison)

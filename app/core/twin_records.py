@@ -32,6 +32,20 @@ def changed_instances(
     return list(latest.values())
 
 
+def inventoried_instances(
+    session: Session, snapshot_id: str
+) -> list[tuple[InstancePose, TwinInstance]]:
+    """Each instance a snapshot's inventory filled the twin with (its baseline: records
+    made at ``snapshot_id`` by no comparison), in the order they were made."""
+    rows = session.execute(
+        select(InstancePose, TwinInstance)
+        .join(TwinInstance, TwinInstance.id == InstancePose.instance_id)
+        .where(InstancePose.snapshot_id == snapshot_id, InstancePose.comparison_id.is_(None))
+        .order_by(InstancePose.created_at, InstancePose.id)
+    ).all()
+    return [(record, instance) for record, instance in rows]
+
+
 def external_ids(session: Session, instance_ids: Iterable[str | None]) -> dict[str, str]:
     """instance id → the twin platform's id, for those of ``instance_ids`` that have one
     (as they are now: a correction shows in every comparison that names the instance)."""

@@ -33,6 +33,12 @@ class InventoryOptions:
     support_cell_m: float = 0.02
     # least area of a support after opening, m²; lower to find small shelves
     min_support_area_m2: float = 0.08
+    # supports are level planes (the environment frame's z is up, set by the floor's
+    # markers); False fits each plane's tilt too (a tilted frame, a sloping floor)
+    level_supports: bool = True
+    # a raster column with more occupied height bins than this is a vertical surface (wall,
+    # furniture side, object flank), left out of the support search
+    column_max_bins: int = 12
     # the most populated height peaks examined as supports; raise for many shelf boards
     max_support_peaks: int = 16
     # ... and at least this × the largest library diameter squared (an object's top is
@@ -78,6 +84,7 @@ class InventoryOptions:
             "max_height_diameters",
             "max_extent_diameters",
             "max_support_peaks",
+            "column_max_bins",
         )
         for name in positive:
             if not getattr(self, name) > 0:

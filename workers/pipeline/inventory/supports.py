@@ -43,9 +43,9 @@ class Support:
 
     @property
     def height_m(self) -> float:
-        """Height of the plane at the footprint's centre, metres."""
-        h, w = self.footprint.shape
-        centre = self.origin_xy + self.cell_m * np.array([w, h]) / 2
+        """Height of the plane at the footprint's centroid, metres."""
+        rows, cols = np.nonzero(self.footprint)
+        centre = self.origin_xy + self.cell_m * (np.array([cols.mean(), rows.mean()]) + 0.5)
         n, d = self.plane[:3], self.plane[3]
         return float(-(n[0] * centre[0] + n[1] * centre[1] + d) / n[2])
 
@@ -86,18 +86,27 @@ def _fit_plane(points: Points) -> tuple[FloatArray, FloatArray]:
     return plane, points @ n + plane[3]
 
 
-def _robust_plane(points: Points, rounds: int = 3) -> tuple[FloatArray, float, BoolArray]:
-    """A plane refitted on the points within 3 robust sigmas of the previous fit; returns
-    the plane, the sigma and the inlier mask."""
+def _level_plane(points: Points) -> tuple[FloatArray, FloatArray]:
+    """The horizontal plane ``[0, 0, 1, −median z]`` of (N ≥ 1, 3) points and residuals."""
+    plane = np.array([0.0, 0.0, 1.0, -float(np.median(points[:, 2]))])
+    return plane, points[:, 2] + plane[3]
+
+
+def _robust_plane(
+    points: Points, level: bool, rounds: int = 3
+) -> tuple[FloatArray, float, BoolArray]:
+    """A plane (horizontal when ``level``) refitted on the points within 3 robust sigmas of
+    the previous fit; returns the plane, the sigma and the inlier mask."""
+    fit = _level_plane if level else _fit_plane
     keep = np.ones(len(points), dtype=bool)
-    plane, resid = _fit_plane(points)
+    plane, resid = fit(points)
     sigma = 0.0
     for _ in range(rounds):
         sigma = max(1.4826 * float(np.median(np.abs(resid - np.median(resid)))), 1e-4)
         keep = np.abs(resid) <= 3.0 * sigma
         if keep.sum() < 3:
             break
-        plane, _ = _fit_plane(points[keep])
+        plane, _ = fit(points[keep])
         resid = points @ plane[:3] + plane[3]
     return plane, sigma, keep
 
@@ -119,6 +128,19 @@ def _peaks(z: FloatArray, options: InventoryOptions) -> list[float]:
     return chosen
 
 
+def _flat_columns(points_env: Points, lo_xy: FloatArray, options: InventoryOptions) -> BoolArray:
+    """(N,) whether each point's raster column holds at most ``column_max_bins`` occupied
+    height bins: not a wall, a furniture side or an object's flank (they span many bins
+    and drown a small table top in the height histogram)."""
+    cell = options.support_cell_m
+    ij = np.floor((points_env[:, :2] - lo_xy) / cell).astype(np.int64)
+    column = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
+    k = np.floor(points_env[:, 2] / options.support_bin_m).astype(np.int64)
+    pairs = np.unique(np.column_stack([column, k]), axis=0)
+    cols, n_bins = np.unique(pairs[:, 0], return_counts=True)
+    return n_bins[np.searchsorted(cols, column)] <= options.column_max_bins
+
+
 def find_supports(
     points_env: Points, max_diameter_m: float, options: InventoryOptions
 ) -> list[Support]:
@@ -129,15 +151,16 @@ def find_supports(
     when no slab covers ``min_support_area_m2``."""
     if len(points_env) == 0:
         return []
-    z = points_env[:, 2]
     cell = options.support_cell_m
     lo_xy = points_env[:, :2].min(axis=0) - cell
+    flat = _flat_columns(points_env, lo_xy, options)
+    z = np.where(flat, points_env[:, 2], np.nan)
     shape_wh = np.ceil((points_env[:, :2].max(axis=0) + cell - lo_xy) / cell).astype(int) + 1
     close_cells = max(int(np.ceil(options.footprint_close_diameters * max_diameter_m / cell)), 1)
     opening = options.support_opening_cells
     min_area = max(options.min_support_area_m2, options.support_area_diameters * max_diameter_m**2)
     found: list[Support] = []
-    for peak in _peaks(z, options):
+    for peak in _peaks(z[flat], options):
         in_slab = np.flatnonzero(np.abs(z - peak) <= options.support_slab_m)
         if len(in_slab) < 3:
             continue
@@ -154,7 +177,7 @@ def find_supports(
             if region.sum() * cell * cell < min_area:
                 continue
             mine = in_slab[region[ij[:, 1], ij[:, 0]]]
-            plane, sigma, keep = _robust_plane(points_env[mine])
+            plane, sigma, keep = _robust_plane(points_env[mine], options.level_supports)
             if plane[2] < 0.97:  # steeper than ~14°: a ramp or a tilted board, not a support
                 continue
             footprint = ndimage.binary_closing(

@@ -1,0 +1,320 @@
+"""The inventory of each snapshot in the database, and what the twin makes of it.
+
+The snapshot job stores what the inventory stage found (:func:`record`: one
+:class:`~app.core.models.SnapshotObject` per library object, its summary on the snapshot).
+When the twin reaches the snapshot (app.core.twin.advance):
+
+- the **first** snapshot fills the twin (:func:`fill_baseline`): each object becomes an
+  instance with a history record ``inventoried``, except where an instance seeded by the
+  twin platform stands (same class, within :func:`match_reach_m`): that instance takes the
+  inventory's pose (record ``inventoried``) and keeps its external id;
+- a **later** snapshot, once its comparison's changes are applied, confirms the open
+  instances it shows (:func:`confirm`): the object is linked to the instance (so
+  ``last_seen_snapshot`` moves on); the pose is refreshed, with a record ``drifted``, only
+  when the inventory's verified pose is further from the twin's than the pose estimate's
+  noise (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a
+  slow drift no single comparison flagged; a verified object no instance accounts for is
+  added (``inventoried``). An instance no object confirms keeps its state: not seen.
+
+Never commits.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from app.core import objects
+from app.core.enums import TwinEdit
+from app.core.errors import Conflict
+from app.core.models import (
+    Environment,
+    InstancePose,
+    LibraryObject,
+    Snapshot,
+    SnapshotObject,
+    TwinInstance,
+)
+
+#: a verified inventory pose this far from the twin's (metres, degrees) is a real move, not
+#: the pose estimate's noise: the inventory's pose targets (every verified pose within
+#: 1 cm / 3°)
+DRIFT_TRANSLATION_M = 0.01
+DRIFT_ROTATION_DEG = 3.0
+#: an instance and an object of its class are one when closer than this × its diameter ...
+MATCH_DIAMETERS = 1.0
+#: ... or this many metres, whichever is larger (the compare stage's instance_match_min)
+MATCH_MIN_M = 0.25
+
+
+def record(
+    session: Session,
+    snapshot: Snapshot,
+    found: Sequence[dict[str, Any]],
+    summary: dict[str, Any],
+) -> list[SnapshotObject]:
+    """Store the inventory stage's objects (its ``objects`` JSON) and ``summary`` on
+    ``snapshot``, replacing an earlier inventory of it."""
+    for old in session.scalars(
+        select(SnapshotObject).where(SnapshotObject.snapshot_id == snapshot.id)
+    ):
+        session.delete(old)
+    env = session.get(Environment, snapshot.environment_id)
+    library = objects.by_names(session, list(env.classes) if env else [])
+    rows = []
+    for position, obj in enumerate(found):
+        name = str(obj["object"])
+        row = SnapshotObject(
+            snapshot_id=snapshot.id,
+            position=position,
+            object_name=name,
+            object_id=library[name].id if name in library else None,
+            pose=obj.get("pose"),
+            pose_quality=obj.get("pose_quality"),
+            identification=dict(obj.get("identification") or {}),
+            centroid_env=[float(v) for v in obj["centroid_env"]],
+            support=obj.get("support"),
+        )
+        session.add(row)
+        rows.append(row)
+    snapshot.inventory = {**summary, "objects": len(rows)}
+    session.flush()
+    return rows
+
+
+class NotInventoried(Conflict):
+    code = "NotInventoried"
+
+
+def require_inventory(snapshot: Snapshot) -> None:
+    """NotInventoried (409) unless the snapshot's inventory was taken."""
+    if snapshot.inventory is None:
+        raise NotInventoried(
+            f"snapshot {snapshot.id} has no inventory (state {snapshot.state}; a laser scan or "
+            "a snapshot reconstructed before inventories has none)"
+        )
+    if "skipped" in snapshot.inventory or "error" in snapshot.inventory:
+        why = snapshot.inventory.get("skipped") or snapshot.inventory["error"].get("detail")
+        raise NotInventoried(f"snapshot {snapshot.id} has no inventory: {why}")
+
+
+def objects_of(session: Session, snapshot_id: str) -> list[SnapshotObject]:
+    """The snapshot's inventory, in the stage's order."""
+    return list(
+        session.scalars(
+            select(SnapshotObject)
+            .where(SnapshotObject.snapshot_id == snapshot_id)
+            .order_by(SnapshotObject.position)
+        )
+    )
+
+
+def last_seen(session: Session, instance_ids: Iterable[str]) -> dict[str, str]:
+    """instance id → the newest snapshot (by seq) whose inventory showed it."""
+    wanted = sorted(set(instance_ids))
+    if not wanted:
+        return {}
+    newest = (
+        select(SnapshotObject.instance_id, func.max(Snapshot.seq).label("seq"))
+        .join(Snapshot, Snapshot.id == SnapshotObject.snapshot_id)
+        .where(SnapshotObject.instance_id.in_(wanted))
+        .group_by(SnapshotObject.instance_id)
+        .subquery()
+    )
+    rows = session.execute(
+        select(newest.c.instance_id, Snapshot.id)
+        .join(SnapshotObject, SnapshotObject.instance_id == newest.c.instance_id)
+        .join(
+            Snapshot,
+            (Snapshot.id == SnapshotObject.snapshot_id) & (Snapshot.seq == newest.c.seq),
+        )
+    ).all()
+    return {str(i): str(s) for i, s in rows}
+
+
+def match_reach_m(diameter_m: float | None) -> float:
+    """How far an instance and an object of its class may be apart and still be one."""
+    return max(MATCH_DIAMETERS * float(diameter_m or 0.0), MATCH_MIN_M)
+
+
+def _position(pose: Any, centroid: Any) -> np.ndarray | None:
+    if pose is not None:
+        return np.asarray(pose, dtype=np.float64)[:3, 3]
+    return None if centroid is None else np.asarray(centroid, dtype=np.float64)
+
+
+def _pairs(
+    instances: Sequence[TwinInstance],
+    found: Sequence[SnapshotObject],
+    library: dict[str, LibraryObject],
+) -> list[tuple[TwinInstance, SnapshotObject]]:
+    """Instance–object pairs of one class within reach, nearest first, each used once
+    (instance positions by pose else centroid; objects' by pose else centroid)."""
+    candidates = []
+    for i, instance in enumerate(instances):
+        here = _position(instance.pose, instance.centroid_env)
+        if here is None:
+            continue
+        for j, obj in enumerate(found):
+            if obj.object_name != instance.object_name:
+                continue
+            there = _position(obj.pose, obj.centroid_env)
+            if there is None:
+                continue
+            lib = library.get(obj.object_name)
+            d = float(np.linalg.norm(here - there))
+            if d <= match_reach_m(lib.diameter_m if lib else None):
+                candidates.append((d, i, j))
+    used_i: set[int] = set()
+    used_j: set[int] = set()
+    out = []
+    for _d, i, j in sorted(candidates):
+        if i in used_i or j in used_j:
+            continue
+        used_i.add(i)
+        used_j.add(j)
+        out.append((instances[i], found[j]))
+    return out
+
+
+def _open(session: Session, environment_id: str) -> list[TwinInstance]:
+    return list(
+        session.scalars(
+            select(TwinInstance)
+            .where(
+                TwinInstance.environment_id == environment_id,
+                TwinInstance.closed_snapshot_id.is_(None),
+            )
+            .order_by(TwinInstance.created_at, TwinInstance.id)
+        )
+    )
+
+
+def _note(
+    session: Session,
+    instance: TwinInstance,
+    snapshot_id: str,
+    comparison_id: str | None,
+    kind: str,
+    obj: SnapshotObject,
+) -> None:
+    """Give ``instance`` the object's pose and a history record ``kind``."""
+    if obj.pose is not None:
+        instance.pose, instance.pose_quality = obj.pose, obj.pose_quality
+    instance.centroid_env = obj.centroid_env
+    instance.since_snapshot_id = snapshot_id
+    session.add(
+        InstancePose(
+            instance_id=instance.id,
+            snapshot_id=snapshot_id,
+            comparison_id=comparison_id,
+            change_type=kind,
+            pose=obj.pose,
+            centroid_env=obj.centroid_env,
+        )
+    )
+
+
+def _create(
+    session: Session,
+    env: Environment,
+    snapshot_id: str,
+    comparison_id: str | None,
+    obj: SnapshotObject,
+) -> TwinInstance:
+    instance = TwinInstance(
+        environment_id=env.id,
+        object_name=obj.object_name,
+        object_id=obj.object_id,
+        pose=obj.pose,
+        pose_quality=obj.pose_quality,
+        centroid_env=obj.centroid_env,
+        since_snapshot_id=snapshot_id,
+        created_snapshot_id=snapshot_id,
+    )
+    session.add(instance)
+    session.flush()
+    _note(session, instance, snapshot_id, comparison_id, TwinEdit.inventoried, obj)
+    return instance
+
+
+def fill_baseline(session: Session, env: Environment, head: Snapshot) -> list[TwinInstance]:
+    """The first snapshot's inventory into the twin (see the module docstring); returns the
+    instances it created or took over."""
+    found = objects_of(session, head.id)
+    if not found:
+        return []
+    library = objects.by_names(session, sorted({o.object_name for o in found}))
+    seeded = _open(session, env.id)
+    taken: list[TwinInstance] = []
+    matched = _pairs(seeded, found, library)
+    for instance, obj in matched:
+        _note(session, instance, head.id, None, TwinEdit.inventoried, obj)
+        obj.instance_id = instance.id
+        taken.append(instance)
+    paired = {id(obj) for _, obj in matched}
+    for obj in found:
+        if id(obj) not in paired:
+            instance = _create(session, env, head.id, None, obj)
+            obj.instance_id = instance.id
+            taken.append(instance)
+    session.flush()
+    return taken
+
+
+def _rotation_deg(a: Any, b: Any) -> float:
+    ra, rb = np.asarray(a, dtype=np.float64)[:3, :3], np.asarray(b, dtype=np.float64)[:3, :3]
+    cos = (float(np.trace(ra.T @ rb)) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
+
+
+def moved_beyond_noise(twin_pose: Any, inventory_pose: Any) -> bool:
+    """Whether two 4×4 poses differ by more than the pose estimate's noise."""
+    if twin_pose is None:
+        return True
+    a, b = np.asarray(twin_pose, dtype=np.float64), np.asarray(inventory_pose, dtype=np.float64)
+    return bool(
+        np.linalg.norm(a[:3, 3] - b[:3, 3]) > DRIFT_TRANSLATION_M
+        or _rotation_deg(a, b) > DRIFT_ROTATION_DEG
+    )
+
+
+def confirm(
+    session: Session, env: Environment, head: Snapshot, comparison_id: str | None
+) -> dict[str, list[TwinInstance]]:
+    """A later snapshot's inventory against the twin as its comparison left it (see the
+    module docstring); returns the instances ``seen``, ``drifted`` and ``added``."""
+    found = objects_of(session, head.id)
+    out: dict[str, list[TwinInstance]] = {"seen": [], "drifted": [], "added": []}
+    if not found:
+        return out
+    library = objects.by_names(session, sorted({o.object_name for o in found}))
+    instances = _open(session, env.id)
+    matched = _pairs(instances, found, library)
+    for instance, obj in matched:
+        obj.instance_id = instance.id
+        out["seen"].append(instance)
+        verified = bool((obj.pose_quality or {}).get("verified"))
+        touched = instance.since_snapshot_id == head.id  # the comparison just posed it
+        if (
+            obj.pose is not None
+            and verified
+            and not touched
+            and moved_beyond_noise(instance.pose, obj.pose)
+        ):
+            _note(session, instance, head.id, comparison_id, TwinEdit.drifted, obj)
+            out["drifted"].append(instance)
+    paired = {id(obj) for _, obj in matched}
+    for obj in found:
+        if id(obj) in paired or not (obj.pose_quality or {}).get("verified"):
+            continue
+        instance = _create(session, env, head.id, comparison_id, obj)
+        obj.instance_id = instance.id
+        out["added"].append(instance)
+    session.flush()
+    return out

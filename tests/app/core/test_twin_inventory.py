@@ -1,0 +1,175 @@
+"""The twin and the snapshots' inventories (app.core.inventory through app.core.twin.advance):
+the first snapshot fills the twin, taking over a seeded instance where it stands; a later
+one confirms what it sees, refreshes a pose only beyond the estimate's noise, and adds what
+no instance accounts for."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from app.core import inventory, twin
+from app.core.enums import ComparisonState, SnapshotState, TwinEdit
+from app.core.models import (
+    Comparison,
+    Environment,
+    Event,
+    InstancePose,
+    LibraryObject,
+    Snapshot,
+    TwinInstance,
+    new_id,
+)
+
+
+def pose_at(x: float, y: float = 0.0, yaw_deg: float = 0.0) -> list[list[float]]:
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:3, 3] = [x, y, 0.0]
+    return m.tolist()
+
+
+def found(name: str, pose: list[list[float]], verified: bool = True) -> dict[str, Any]:
+    return {
+        "object": name,
+        "pose": pose,
+        "pose_quality": {"verified": verified, "reasons": []},
+        "identification": {"metric": 0.8, "iou": 0.8, "overlaps": 9, "occurrences": 10},
+        "centroid_env": [pose[0][3], pose[1][3], 0.05],
+        "support": "floor",
+    }
+
+
+@pytest.fixture
+def env(session: Session) -> Environment:
+    tag = new_id()[:8]
+    environment = Environment(name=f"env-{tag}", classes=["drill", "bowl"])
+    session.add(environment)
+    for name, diameter in (("drill", 0.2), ("bowl", 0.16)):
+        session.add(
+            LibraryObject(
+                name=name,
+                filename="m.ply",
+                file_key="k",
+                size_bytes=1,
+                diameter_m=diameter,
+            )
+        )
+    session.flush()
+    return environment
+
+
+def snapshot(session: Session, env: Environment, seq: int) -> Snapshot:
+    snap = Snapshot(
+        environment_id=env.id, seq=seq, storage_prefix=f"p/{seq}", state=SnapshotState.processing
+    )
+    session.add(snap)
+    session.flush()
+    return snap
+
+
+def reconstructed(session: Session, snap: Snapshot, objects: list[dict[str, Any]]) -> None:
+    """What the snapshot job persists: the inventory, the state, then the chain moves on."""
+    inventory.record(session, snap, objects, {"stats": {"objects": len(objects)}})
+    snap.state = SnapshotState.reconstructed
+    session.flush()
+    twin.advance(session, snap.environment_id)
+
+
+def succeed_comparison(
+    session: Session, env: Environment, before: Snapshot, after: Snapshot
+) -> None:
+    comparison = session.scalar(
+        select(Comparison).where(Comparison.after_id == after.id, Comparison.automatic.is_(True))
+    )
+    assert comparison is not None and comparison.before_id == before.id
+    comparison.state = ComparisonState.succeeded
+    session.flush()
+    twin.advance(session, env.id)
+
+
+def history(session: Session, instance_id: str) -> list[str]:
+    return [
+        p.change_type
+        for p in session.scalars(
+            select(InstancePose)
+            .where(InstancePose.instance_id == instance_id)
+            .order_by(InstancePose.created_at, InstancePose.id)
+        )
+    ]
+
+
+def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
+    session: Session, env: Environment
+) -> None:
+    seeded = TwinInstance(
+        environment_id=env.id, object_name="bowl", pose=pose_at(0.52), external_id="erp:1"
+    )
+    session.add(seeded)
+    session.flush()
+    session.add(InstancePose(instance_id=seeded.id, change_type=TwinEdit.seeded, pose=seeded.pose))
+    first = snapshot(session, env, 1)
+    reconstructed(
+        session,
+        first,
+        [found("drill", pose_at(0.1)), found("drill", pose_at(-0.6)), found("bowl", pose_at(0.5))],
+    )
+    current = twin.current(session, env.id)
+    assert sorted((i.object_name, i.pose[0][3]) for i in current) == [
+        ("bowl", 0.5),
+        ("drill", -0.6),
+        ("drill", 0.1),
+    ]
+    assert len(current) == 3  # the seeded bowl was taken over, not duplicated
+    bowl = next(i for i in current if i.object_name == "bowl")
+    assert bowl.id == seeded.id and bowl.external_id == "erp:1"
+    assert history(session, bowl.id) == ["seeded", "inventoried"]
+    drills = [i for i in current if i.object_name == "drill"]
+    assert all(history(session, i.id) == ["inventoried"] for i in drills)
+    assert {i.created_snapshot_id for i in drills} == {first.id}
+    rows = inventory.objects_of(session, first.id)
+    assert {r.instance_id for r in rows} == {i.id for i in current}
+    event = session.scalars(
+        select(Event).where(Event.environment_id == env.id).order_by(Event.created_at.desc())
+    ).first()
+    assert event is not None and event.data["outcome"] == "baseline"
+    assert {(i["instance_id"], i["external_id"]) for i in event.data["instances"]} >= {
+        (seeded.id, "erp:1")
+    }
+
+    # seq 2: the comparison found nothing (drifts under its threshold); the inventory sees
+    # the first drill 2 mm off (noise: no record), the bowl 3 cm off (a drift: refreshed),
+    # a new drill where no instance stands, and not the second drill (not seen)
+    second = snapshot(session, env, 2)
+    reconstructed(
+        session,
+        second,
+        [
+            found("drill", pose_at(0.102)),
+            found("bowl", pose_at(0.53, yaw_deg=1.0)),
+            found("drill", pose_at(1.5)),
+            found("bowl", pose_at(-1.5), verified=False),
+        ],
+    )
+    succeed_comparison(session, env, first, second)
+    current = twin.current(session, env.id)
+    by_x = {round(i.pose[0][3], 3): i for i in current}
+    assert sorted(by_x) == [-0.6, 0.1, 0.53, 1.5]  # the unverified bowl is not added
+    assert history(session, by_x[0.1].id) == ["inventoried"]  # jitter: no record
+    assert history(session, by_x[0.53].id) == ["seeded", "inventoried", "drifted"]
+    assert history(session, by_x[1.5].id) == ["inventoried"]
+    seen = inventory.last_seen(session, [i.id for i in current])
+    assert seen[by_x[0.1].id] == second.id and seen[by_x[0.53].id] == second.id
+    assert seen[by_x[-0.6].id] == first.id  # not seen by the second: keeps its state
+
+
+def test_moved_beyond_noise() -> None:
+    assert not inventory.moved_beyond_noise(pose_at(0.1), pose_at(0.105, yaw_deg=2.0))
+    assert inventory.moved_beyond_noise(pose_at(0.1), pose_at(0.115))
+    assert inventory.moved_beyond_noise(pose_at(0.1), pose_at(0.1, yaw_deg=4.0))
+    assert inventory.moved_beyond_noise(None, pose_at(0.1))

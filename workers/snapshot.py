@@ -146,13 +146,12 @@ def _inventory(
     records: list[ingest.ImageRecord],
     progress: Any,
 ) -> Inventory:
-    """Every library object the reconstruction shows (workers.pipeline.inventory). A
-    pipeline failure here leaves the reconstruction good: the summary carries the error
-    and the inventory is empty; bad options fail the job (InputError)."""
+    """Every library object the reconstruction shows (workers.pipeline.inventory; empty
+    while no library object of the classes is ready to pose). A pipeline failure here
+    leaves the reconstruction good: the summary carries the error and the inventory is
+    empty; bad options fail the job (InputError)."""
     options = inventory_options_from_json(inputs.inventory_options)
     models = inputs.models or {}
-    if not models:
-        return Inventory([], {"skipped": "no library object of the classes is ready"})
     points, colors = load_cloud(result.cloud_path)
     capture = CaptureData(
         points_env=points,

@@ -98,8 +98,8 @@ def require_inventory(snapshot: Snapshot) -> None:
             f"snapshot {snapshot.id} has no inventory (state {snapshot.state}; a laser scan or "
             "a snapshot reconstructed before inventories has none)"
         )
-    if "skipped" in snapshot.inventory or "error" in snapshot.inventory:
-        why = snapshot.inventory.get("skipped") or snapshot.inventory["error"].get("detail")
+    if "error" in snapshot.inventory:
+        why = snapshot.inventory["error"].get("detail")
         raise NotInventoried(f"snapshot {snapshot.id} has no inventory: {why}")
 
 

@@ -14,7 +14,9 @@ reports a class seen only after as ``added`` (a new instance), one seen only bef
 so the twin an environment ends with says which snapshots were applied and in what order.
 
 Markers in a capture's image names steer a run: ``delay-<seconds>-…`` sleeps that long in
-reconstruction, ``fail-…`` makes reconstruction fail.
+reconstruction, ``fail-…`` makes reconstruction fail, ``inventory-…`` makes the fake
+inventory list every detected class as an object at its fake pose (verified); without it
+the inventory is empty, as the real stage's is with no prepared library object.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from workers.pipeline.compare.options import CompareOptions
 from workers.pipeline.compare.results import CompareResult
 from workers.pipeline.compare.thresholds import DistanceStats
 from workers.pipeline.errors import PipelineError
+from workers.pipeline.inventory import InventoryObject, InventoryOptions, InventoryResult
 from workers.pipeline.reconstruct.stage import ReconstructionResult
 
 FAKE_CHANGES = "fake_changes"
@@ -157,10 +160,41 @@ def pose_changes(
     return changes
 
 
+def take_inventory(
+    capture: CaptureData,
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    load_model: Callable[[str], Any],
+    options: InventoryOptions,
+    progress: Callable[[str, float], None] | None = None,
+) -> InventoryResult:
+    """One verified object per detected class at the scene's fake pose (x from its box
+    centre), when an image name carries the ``inventory-`` marker; else none."""
+    objects: list[InventoryObject] = []
+    if any(name.startswith("inventory-") for name in capture.detections):
+        for name, x in scene(capture, classes).items():
+            objects.append(
+                InventoryObject(
+                    object_name=name,
+                    class_id=list(classes).index(name),
+                    env_from_object=np.asarray(_pose(x)),
+                    pose_quality={"verified": True, "reasons": [], "fake": True},
+                    identification={"metric": 1.0, "iou": 1.0, "overlaps": 1, "occurrences": 1},
+                    centroid_env=np.array([x, 0.0, 0.0]),
+                    cluster={"fake": True},
+                    support="floor",
+                )
+            )
+    if progress is not None:
+        progress("inventory", 1.0)
+    return InventoryResult(options, tuple(objects), (), (), {"objects": len(objects)})
+
+
 def install(setattr_: Callable[[Any, str, Any], None] = setattr) -> None:
     """Patch the fake into the glue modules (``setattr_`` may be ``monkeypatch.setattr``)."""
     from workers import comparison, snapshot
 
     setattr_(snapshot, "reconstruct", reconstruct)
+    setattr_(snapshot, "take_inventory", take_inventory)
     setattr_(comparison, "compare_snapshots", compare_snapshots)
     setattr_(comparison, "pose_changes", pose_changes)

@@ -16,7 +16,7 @@ router = APIRouter(tags=["snapshots"], responses=ERRORS)
     "/snapshots/{snapshot_id}/objects",
     responses=conflict(
         "NotInventoried: the snapshot has no inventory (not reconstructed yet, a laser scan, "
-        "or no library object of its classes was ready)"
+        "or the inventory failed)"
     ),
 )
 def list_objects(snapshot_id: str, session: SessionDep, key: ReadKey) -> list[SnapshotObjectRead]:

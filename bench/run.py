@@ -143,6 +143,11 @@ def _world_set(d: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _inventory(d: dict[str, Any]) -> dict[str, Any]:
+    summary = d.get("summary") or {}
+    return {"set": d.get("set"), **{k: v for k, v in summary.items() if k != "targets"}}
+
+
 def _c2c(d: dict[str, Any]) -> dict[str, Any]:
     out: dict[str, Any] = {"points": d.get("points")}
     for name, row in d.get("directions", {}).items():
@@ -230,6 +235,18 @@ BENCHES: tuple[Bench, ...] = (
             ("--set", name, "--real-camera"),
             ("--set", name, "--quick"),
             headline=_world_set,
+        )
+        for name in ("tuning", "test")
+    ),
+    # the inventory of every snapshot (issue #19), on the same split: tune / report
+    *(
+        Bench(
+            f"inventory_{name}",
+            "bench.inventory_bench",
+            f"inventory_{name}.json",
+            ("--set", name),
+            ("--set", name, "--quick"),
+            headline=_inventory,
         )
         for name in ("tuning", "test")
     ),

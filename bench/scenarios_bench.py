@@ -679,6 +679,7 @@ def run_world_set(args: argparse.Namespace) -> int:
             "detection": vars(base.detection),
         },
         "reconstruct_preset": recon_preset,
+        "compare_options": options_from_json("default").to_json(),
         "model_prepare_s": prep_s,
         "load_average": os.getloadavg(),
         "cpus": os.cpu_count(),

@@ -169,6 +169,9 @@ class CompareOptions:
     seen_tolerance_m: float = 0.02
     # extra seen-check tolerance: the depth span of this many z-buffer pixels
     seen_tolerance_px: float = 2.0
+    # long side of the seen checks' own z-buffers, pixels (None: zbuffer_max_side's);
+    # finer ones see lower objects go, at more time
+    seen_zbuffer_max_side: int | None = None
     # reporting
     # smallest unidentified cluster reported as a change, points (~5 × 5 cm at 2.5 mm spacing)
     unidentified_min_points: int = 300
@@ -251,6 +254,8 @@ class CompareOptions:
             raise InputError("option min_box_area_px must be ≥ 0")
         if not (self.seen_tolerance_m >= 0 and self.seen_tolerance_px >= 0):
             raise InputError("options seen_tolerance_m and seen_tolerance_px must be ≥ 0")
+        if self.seen_zbuffer_max_side is not None and not self.seen_zbuffer_max_side > 0:
+            raise InputError("option seen_zbuffer_max_side must be > 0 or null")
         for name in ("twin_identify_threshold", "still_there_metric"):
             value = getattr(self, name)
             if value is not None and not 0.0 < value <= 1.0:

@@ -42,17 +42,18 @@ from workers.pipeline.errors import ComparisonError, InputError
 Progress = Callable[[str, float], None]
 
 
-def render_depth_maps(capture: CaptureData, options: CompareOptions) -> list[DepthMap]:
-    """One z-buffer per camera of ``capture`` from (a seeded subset of) its own cloud."""
+def render_depth_maps(
+    capture: CaptureData, options: CompareOptions, max_side: int | None = None
+) -> list[DepthMap]:
+    """One z-buffer per camera of ``capture`` from (a seeded subset of) its own cloud,
+    ``max_side`` pixels on its long side (default ``zbuffer_max_side``)."""
+    side = options.zbuffer_max_side if max_side is None else max_side
     pts = capture.points_env
     if len(pts) > options.zbuffer_max_points:
         rng = np.random.default_rng(options.seed)
         pts = pts[rng.choice(len(pts), options.zbuffer_max_points, replace=False)]
     pts32 = np.ascontiguousarray(pts.T, dtype=np.float32)  # (3, N) columns
-    return [
-        render_depth(cam, pts32, options.zbuffer_max_side, options.zbuffer_fill_px)
-        for cam in capture.cameras
-    ]
+    return [render_depth(cam, pts32, side, options.zbuffer_fill_px) for cam in capture.cameras]
 
 
 def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:
@@ -88,6 +89,19 @@ def _depth_maps(before: CaptureData, after: CaptureData, options: CompareOptions
     maps_after = render_depth_maps(after, options) if need_after else None
     maps_before = render_depth_maps(before, options) if need_before else None
     return DepthMapsPair(before=maps_before, after=maps_after)
+
+
+def _seen_maps(
+    before: CaptureData, after: CaptureData, maps: DepthMapsPair, options: CompareOptions
+) -> DepthMapsPair:
+    """The z-buffers of the seen checks: ``maps`` themselves, or finer ones when
+    ``seen_zbuffer_max_side`` asks for them."""
+    side = options.seen_zbuffer_max_side
+    if side is None or side == options.zbuffer_max_side:
+        return maps
+    after_maps = render_depth_maps(after, options, side) if options.check_seen_removed else None
+    before_maps = render_depth_maps(before, options, side) if options.check_seen_added else None
+    return DepthMapsPair(before=before_maps, after=after_maps)
 
 
 def _side_input(
@@ -189,7 +203,8 @@ def compare_snapshots(
     watch.lap("zbuffers")
     candidates = find_candidates(c2c, before, after, clouds, maps, options)
     watch.lap("thresholds")
-    removed = drop_unseen_removed(candidates.removed, before, maps.after, options)
+    seen_maps = _seen_maps(before, after, maps, options)
+    removed = drop_unseen_removed(candidates.removed, before, seen_maps.after, options)
     candidates = Candidates(added=candidates.added, removed=removed)
     watch.lap("seen_check")
 
@@ -203,7 +218,7 @@ def compare_snapshots(
     report("compare.changes", 0.9)
     threshold_added = candidates.added.distances.threshold
     unevidenced = unevidenced_added(
-        clusters, c2c.added, threshold_added, after, maps.before, options
+        clusters, c2c.added, threshold_added, after, seen_maps.before, options
     )
     there = still_there(clusters, before, after, maps.before, maps.after, classes, options)
     try:

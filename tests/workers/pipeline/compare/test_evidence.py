@@ -16,8 +16,10 @@ from tests.workers.pipeline.compare_scene import (
     DIAMETERS,
     TWIN,
     Counter,
+    Obj,
     capture,
     detections,
+    twin_of,
 )
 from workers.pipeline.compare import PRESETS, CaptureData, ClusterResult, compare_snapshots
 from workers.pipeline.compare.evidence import name_by_twin, occurrence_boxes
@@ -120,3 +122,24 @@ def test_occurrences_need_a_box_of_the_smallest_area(before: CaptureData) -> Non
 def test_evidence_options_are_checked(name: str, value: float) -> None:
     with pytest.raises(InputError, match=name):
         PRESETS["default"].replace(**{name: value})
+
+
+def test_a_flat_removal_is_seen_with_the_finer_seen_check() -> None:
+    """A 2.5 cm high crate-class slab removed: the default seen check (2 cm + 2 px of a
+    256-px z-buffer, about 6 cm at 3.6 m) sees none of it go; a 512-px seen z-buffer with
+    3 mm + 1 px sees its top."""
+    slab = Obj(0, (-0.6, 0.4), (((0.0, 0.0), (0.4, 0.3, 0.025)),))
+    before = capture([slab, BASE[1]], CAMS, seed=1)
+    after = capture([BASE[1]], CAMS, seed=2)
+    twin = twin_of([slab, BASE[1]], ["slab-1", "bin-1"])
+    coarse = PRESETS["default"]
+    fine = coarse.replace(seen_tolerance_m=0.003, seen_tolerance_px=1.0, seen_zbuffer_max_side=512)
+    res_coarse = compare_snapshots(
+        before, after, twin, CLASSES, DIAMETERS, coarse, new_id=Counter()
+    )
+    res_fine = compare_snapshots(before, after, twin, CLASSES, DIAMETERS, fine, new_id=Counter())
+    seen_coarse = res_coarse.stats["candidates_seen"]["removed"]
+    seen_fine = res_fine.stats["candidates_seen"]["removed"]
+    assert seen_fine > max(100, 5 * seen_coarse)
+    assert ("removed", "crate") in _identified(res_fine)
+    assert ("removed", "crate") not in _identified(res_coarse)

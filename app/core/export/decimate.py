@@ -1,8 +1,8 @@
 """A snapshot's cloud at a size a browser draws: at most N points, binary PLY, cached on disk.
 
-The points kept are a uniformly random subset drawn with a fixed seed: point i of the cloud is
-kept when its rank in one fixed random permutation of the cloud (seed :data:`SEED`) is below
-N. So the same N always gives the same file, a smaller N gives a subset of a larger one (a
+The points kept are a uniformly random subset drawn with a fixed seed: every point of the
+cloud gets one uniform random key (seed :data:`SEED`) and the N with the smallest keys are
+kept. So the same N always gives the same file, a smaller N gives a subset of a larger one (a
 level of detail), and every part of the cloud keeps the same share of its points (even in
 space wherever the cloud is, which the reconstruction's voxel fusion already makes even).
 
@@ -55,11 +55,14 @@ def decimated_key(pointcloud_key: str, n_points: int) -> str:
 
 def kept_mask(total: int, n_points: int, seed: int = SEED) -> NDArray[np.bool_]:
     """(total,) which points a cloud of ``total`` keeps at ``n_points`` (all when
-    ``n_points`` ≥ ``total``): those whose rank in the seeded permutation is < n_points."""
+    ``n_points`` ≥ ``total``): the ``n_points`` with the smallest of one seeded uniform key
+    per point, so a smaller ``n_points`` keeps a subset of a larger one."""
     if n_points >= total:
         return np.ones(total, dtype=bool)
-    rank = np.random.default_rng(seed).permutation(total)
-    return rank < n_points
+    keys = np.random.default_rng(seed).random(total)
+    mask = np.zeros(total, dtype=bool)
+    mask[np.argpartition(keys, n_points - 1)[:n_points]] = True
+    return mask
 
 
 def ply_header(n_points: int, comment: str = "") -> bytes:
@@ -152,6 +155,12 @@ def _records(vertices: NDArray[np.void]) -> NDArray[np.void]:
     out = np.empty(len(vertices), RECORD)
     for axis in ("x", "y", "z"):
         out[axis] = vertices[axis]
+    names = set(vertices.dtype.names or ())
+    if {"red", "green", "blue"} <= names and all(
+        vertices.dtype[c] == np.uint8 for c in ("red", "green", "blue")
+    ):  # 8-bit colours (what the reconstruction writes) as they are
+        out["r"], out["g"], out["b"] = vertices["red"], vertices["green"], vertices["blue"]
+        return out
     colors = colors_of(vertices)
     rgb = (
         np.full((len(vertices), 3), GREY, np.uint8)

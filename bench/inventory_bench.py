@@ -96,17 +96,31 @@ def views_boxed(data: CaptureData, classes: list[str], placement: dict[str, Any]
     return n
 
 
+def centre_of(pose: Any, model: PreparedModel) -> np.ndarray:
+    """(3,) the model's centre posed by 4×4 ``pose`` (a symmetric object's origin may lie
+    off its axis: centres, not origins, say where an object is)."""
+    return np.asarray(pose, dtype=np.float64) @ np.append(model.centre_object, 1.0)
+
+
 def _pairs(
-    truths: list[dict[str, Any]], found: list[dict[str, Any]], reach: dict[str, float]
+    truths: list[dict[str, Any]],
+    found: list[dict[str, Any]],
+    reach: dict[str, float],
+    models: dict[str, PreparedModel],
 ) -> list[tuple[int, int]]:
-    """Truth–found pairs of one class within reach, nearest first, each used once."""
+    """Truth–found pairs of one class whose centres lie within reach, nearest first, each
+    used once."""
     cands = []
     for i, t in enumerate(truths):
-        tp = np.asarray(t["env_from_object"])[:3, 3]
+        tp = centre_of(t["env_from_object"], models[t["object"]])[:3]
         for j, f in enumerate(found):
             if f["object"] != t["object"]:
                 continue
-            fp = np.asarray(f["pose"])[:3, 3] if f.get("pose") else np.asarray(f["centroid_env"])
+            fp = (
+                centre_of(f["pose"], models[f["object"]])[:3]
+                if f.get("pose") is not None
+                else np.asarray(f["centroid_env"])
+            )
             d = float(np.linalg.norm(tp - fp))
             if d <= reach[t["object"]]:
                 cands.append((d, i, j))
@@ -133,7 +147,7 @@ def score_capture(
     placements = [p for p in truth[capture] if not p.get("distractor")]
     found = [o.to_json() for o in result.objects]
     reach = {n: max(0.5 * m.diameter_m, 0.05) for n, m in models.items()}
-    pairs = dict(_pairs(placements, found, reach))
+    pairs = dict(_pairs(placements, found, reach, models))
     rows = []
     for i, p in enumerate(placements):
         row: dict[str, Any] = {
@@ -229,13 +243,22 @@ def twin_check(
     current = list(by_id.values())
     reach = {n: match_reach_m(m.diameter_m) for n, m in models.items()}
     as_truth = [{"object": t["object"], "env_from_object": t["pose"]} for t in current]
-    pairs = _pairs(as_truth, found, reach)
+    pairs = _pairs(as_truth, found, reach, models)
     drifted = 0
     for i, j in pairs:
         f = found[j]
         verified = bool((f["pose_quality"] or {}).get("verified"))
         fresh = current[i]["id"] not in touched
-        if verified and fresh and moved_beyond_noise(current[i]["pose"], f["pose"]):
+        symmetric = bool((f["pose_quality"] or {}).get("ambiguous"))
+        model = models[f["object"]]
+        moved = moved_beyond_noise(
+            current[i]["pose"],
+            f["pose"],
+            centre_of(current[i]["pose"], model)[:3],
+            centre_of(f["pose"], model)[:3],
+            symmetric,
+        )
+        if verified and fresh and moved:
             current[i]["pose"] = f["pose"]
             drifted += 1
     paired = {j for _, j in pairs}
@@ -249,7 +272,7 @@ def twin_check(
     placements = [p for p in truth["after"] if not p.get("distractor")]
     match_reach = {n: max(0.5 * m.diameter_m, 0.05) for n, m in models.items()}
     as_found = [{"object": t["object"], "pose": t["pose"], "centroid_env": None} for t in current]
-    tp = dict(_pairs(placements, as_found, match_reach))
+    tp = dict(_pairs(placements, as_found, match_reach, models))
     rows = []
     for i, p in enumerate(placements):
         row: dict[str, Any] = {

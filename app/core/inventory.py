@@ -143,9 +143,11 @@ def match_reach_m(diameter_m: float | None) -> float:
 
 
 def _position(pose: Any, centroid: Any) -> np.ndarray | None:
-    if pose is not None:
-        return np.asarray(pose, dtype=np.float64)[:3, 3]
-    return None if centroid is None else np.asarray(centroid, dtype=np.float64)
+    """Where an instance or object is: its centre when known (a symmetric object's model
+    origin may lie off its axis, anywhere on a circle about it), else its pose's origin."""
+    if centroid is not None:
+        return np.asarray(centroid, dtype=np.float64)
+    return None if pose is None else np.asarray(pose, dtype=np.float64)[:3, 3]
 
 
 def _pairs(
@@ -273,15 +275,26 @@ def _rotation_deg(a: Any, b: Any) -> float:
     return math.degrees(math.acos(max(-1.0, min(1.0, cos))))
 
 
-def moved_beyond_noise(twin_pose: Any, inventory_pose: Any) -> bool:
-    """Whether two 4×4 poses differ by more than the pose estimate's noise."""
+def moved_beyond_noise(
+    twin_pose: Any,
+    inventory_pose: Any,
+    twin_centre: Any = None,
+    inventory_centre: Any = None,
+    symmetric: bool = False,
+) -> bool:
+    """Whether an instance moved beyond the pose estimate's noise: its centre (else its
+    pose's origin) by more than :data:`DRIFT_TRANSLATION_M`, or, unless the object is
+    symmetric (any turn about its axis is the same object), its rotation by more than
+    :data:`DRIFT_ROTATION_DEG`."""
     if twin_pose is None:
         return True
     a, b = np.asarray(twin_pose, dtype=np.float64), np.asarray(inventory_pose, dtype=np.float64)
-    return bool(
-        np.linalg.norm(a[:3, 3] - b[:3, 3]) > DRIFT_TRANSLATION_M
-        or _rotation_deg(a, b) > DRIFT_ROTATION_DEG
-    )
+    here = _position(a, twin_centre)
+    there = _position(b, inventory_centre)
+    assert here is not None and there is not None
+    if np.linalg.norm(here - there) > DRIFT_TRANSLATION_M:
+        return True
+    return not symmetric and _rotation_deg(a, b) > DRIFT_ROTATION_DEG
 
 
 def confirm(
@@ -305,7 +318,13 @@ def confirm(
             obj.pose is not None
             and verified
             and not touched
-            and moved_beyond_noise(instance.pose, obj.pose)
+            and moved_beyond_noise(
+                instance.pose,
+                obj.pose,
+                instance.centroid_env,
+                obj.centroid_env,
+                bool((obj.pose_quality or {}).get("ambiguous")),
+            )
         ):
             _note(session, instance, head.id, comparison_id, TwinEdit.drifted, obj)
             out["drifted"].append(instance)

@@ -173,3 +173,8 @@ def test_moved_beyond_noise() -> None:
     assert inventory.moved_beyond_noise(pose_at(0.1), pose_at(0.115))
     assert inventory.moved_beyond_noise(pose_at(0.1), pose_at(0.1, yaw_deg=4.0))
     assert inventory.moved_beyond_noise(None, pose_at(0.1))
+    # a can whose model origin is 8 cm off its axis, turned 30° about it: the same object
+    turned = pose_at(0.1 - 0.08 * np.cos(np.radians(30)), -0.08 * np.sin(np.radians(30)), 30.0)
+    centre = [0.1 - 0.08, 0.0, 0.05]
+    assert not inventory.moved_beyond_noise(pose_at(0.1), turned, centre, centre, symmetric=True)
+    assert inventory.moved_beyond_noise(pose_at(0.1), turned, centre, centre, symmetric=False)

@@ -136,8 +136,10 @@ def _flat_columns(points_env: Points, lo_xy: FloatArray, options: InventoryOptio
     ij = np.floor((points_env[:, :2] - lo_xy) / cell).astype(np.int64)
     column = ij[:, 0] * (int(ij[:, 1].max()) + 1) + ij[:, 1]
     k = np.floor(points_env[:, 2] / options.support_bin_m).astype(np.int64)
-    pairs = np.unique(np.column_stack([column, k]), axis=0)
-    cols, n_bins = np.unique(pairs[:, 0], return_counts=True)
+    k -= k.min()
+    span = int(k.max()) + 1
+    occupied = np.unique(column * span + k)  # one entry per (column, height bin)
+    cols, n_bins = np.unique(occupied // span, return_counts=True)
     return n_bins[np.searchsorted(cols, column)] <= options.column_max_bins
 
 

@@ -4,6 +4,7 @@ and on a table top seen by a ring of cameras, YOLO boxes from the true objects."
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -19,6 +20,8 @@ from tests.workers.pipeline.compare_scene import (
     crate,
     ring_cameras,
 )
+from tests.workers.pipeline.test_compare_cli import write_capture
+from workers.pipeline.__main__ import main
 from workers.pipeline.compare.data import CaptureData
 from workers.pipeline.errors import InputError
 from workers.pipeline.inventory import (
@@ -30,6 +33,7 @@ from workers.pipeline.inventory import (
 )
 from workers.pipeline.model import PreparedModel, prepare_model
 
+MODEL_DIRS: dict[str, Path] = {}
 SIZES = {"crate": (0.4, 0.3, 0.3), "bin": (0.25, 0.25, 0.5)}
 CAMS = ring_cameras(n=10)
 
@@ -42,7 +46,13 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, PreparedModel]
         path = work / f"{name}.ply"
         o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh.create_box(*size))
         out[name] = prepare_model(path, work / name, name=name)
+        MODEL_DIRS[name] = work / name
     return out
+
+
+def _model_dir(model: PreparedModel) -> Path:
+    """The work folder ``model`` was prepared in (``python -m workers.pipeline model``'s)."""
+    return MODEL_DIRS[model.name]
 
 
 def diameters(models: dict[str, PreparedModel]) -> dict[str, float]:
@@ -212,3 +222,18 @@ def test_options_round_trip() -> None:
     options = inventory_options_from_json({"preset": "fast", "band_min_m": 0.006})
     assert options.band_min_m == 0.006 and dict(options.pose) == {"preset": "fast"}
     assert json.loads(json.dumps(options.to_json()))["pose"] == {"preset": "fast"}
+
+
+def test_the_cli_lists_the_objects_of_a_capture_folder(
+    tmp_path: Path, models: dict[str, PreparedModel], capsys: pytest.CaptureFixture[str]
+) -> None:
+    write_capture(tmp_path / "capture", capture([crate(-0.8, 0.5), bin_(0.7, -0.6)], CAMS, 1))
+    model_args = [f"--model={name}={_model_dir(models[name])}" for name in SIZES]
+    out = tmp_path / "inventory.json"
+    code = main(["inventory", str(tmp_path / "capture"), *model_args, "--out", str(out), "--quiet"])
+    assert code == 0
+    listed = json.loads(out.read_text())
+    assert sorted(o["object"] for o in listed["objects"]) == ["bin", "crate"]
+    assert [s["name"] for s in listed["supports"]] == ["floor"]
+    assert main(["inventory", str(tmp_path / "capture"), "--options", "[1]"]) == 2
+    assert "must be a JSON object" in capsys.readouterr().err

@@ -13,11 +13,19 @@ SYSTEM_PACKAGES := libusb-1.0-0 libgl1 libegl1 libx11-6 libgomp1
 HOST ?= 127.0.0.1
 PORT ?= 8000
 export HOST PORT
+# The operator console (console/, an npm project built by vite into console/dist, served at /ui/).
+# It is rebuilt when dist is missing or older than a source, the manifest or the lock file.
+CONSOLE_SOURCES := $(shell find console/src -type f 2>/dev/null) $(wildcard console/index.html console/package.json console/vite.config.ts console/tsconfig.json console/public/*)
+CONSOLE_BUILT := console/dist/index.html
+CONSOLE_DEPS := console/node_modules/.installed
+NODE_MIN := 20.19
 
-.PHONY: help install system-packages test-tools demo serve test bench lint format openapi option-schema option-docs clean
+.PHONY: help install system-packages node-tools console test-tools demo serve test bench lint format openapi option-schema option-docs clean
 
 help:
 	@echo "make demo    - run the whole service on a generated before/after scene and print the changes"
+	@echo "               (KEEP=1: keep it running at the end and open the console it prints)"
+	@echo "make console - build the operator console (console/ -> console/dist, served at /ui/)"
 	@echo "make test    - the test suite (needs PostgreSQL and Redis on 127.0.0.1, see README)"
 	@echo "make serve   - the embedded service (API + workers, no external servers) on HOST:PORT"
 	@echo "make bench   - benchmarks; JSON results under bench/results/"
@@ -51,10 +59,33 @@ system-packages:
 	  fi; \
 	fi
 
-demo: install
-	$(PY) -m workers.demo
+# Node.js >= $(NODE_MIN) and npm (vite's minimum) for the console's build; installed with apt
+# when run as root, otherwise says what to install. Not needed at run time (no CDN either).
+node-tools:
+	@ok() { command -v npm >/dev/null && node -e 'const [a, b] = process.versions.node.split(".").map(Number); const [x, y] = "$(NODE_MIN)".split(".").map(Number); process.exit(a > x || (a === x && b >= y) ? 0 : 1)' 2>/dev/null; }; \
+	ok || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing nodejs and npm (to build the console)"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null; \
+	  fi; \
+	  ok || { echo "The console's build needs Node.js >= $(NODE_MIN) with npm (found: $$(node --version 2>/dev/null || echo none))."; \
+	    echo "Install them first, e.g. sudo apt-get install nodejs npm (Debian 13), or Node.js 22 from nodejs.org / NodeSource."; exit 1; }; }
 
-serve: install
+$(CONSOLE_DEPS): console/package.json console/package-lock.json | node-tools
+	cd console && npm ci --no-audit --no-fund --loglevel=error
+	@touch $@
+
+$(CONSOLE_BUILT): $(CONSOLE_DEPS) $(CONSOLE_SOURCES)
+	cd console && npm run build
+	@touch $@
+
+console: $(CONSOLE_BUILT)
+
+demo: install console
+	$(PY) -m workers.demo $(if $(KEEP),--keep --port $(PORT))
+
+serve: install console
 	$(VENV)/bin/twindelta serve --host $(HOST) --port $(PORT)
 
 # The suite also validates docker-compose.yml with Debian's docker-compose (no engine needed).
@@ -74,8 +105,14 @@ test-tools:
 	@[ -d tools/gltf-validator/node_modules ] || { \
 	  echo "installing the glTF validator (tools/gltf-validator, from its package-lock.json)"; \
 	  cd tools/gltf-validator && npm ci --no-audit --no-fund --loglevel=error; }
+	@{ command -v chromium >/dev/null && command -v chromedriver >/dev/null; } || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing chromium and chromium-driver (the console's browser tests)"; \
+	    DEBIAN_FRONTEND=noninteractive apt-get update -qq && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium chromium-driver >/dev/null; \
+	  else echo "Install Chromium first: sudo apt-get install chromium chromium-driver"; exit 1; fi; }
 
-test: install test-tools
+test: install test-tools console
 	$(VENV)/bin/pytest -q $(PYTEST_ARGS)
 
 bench: install
@@ -109,4 +146,4 @@ option-docs: install
 	$(VENV)/bin/python -m workers.pipeline option-docs --out docs/options.md
 
 clean:
-	rm -rf .tools $(VENV) twindelta-data demo-output
+	rm -rf .tools $(VENV) twindelta-data demo-output console/dist console/node_modules

@@ -153,8 +153,10 @@ def write_report(
     extra: list[dict[str, Any]],
     classes: list[str],
     timings: dict[str, float],
+    console_url: str | None = None,
 ) -> Path:
-    """Write ``out_dir/report.html`` (with its PNGs) and return its path."""
+    """Write ``out_dir/report.html`` (with its PNGs) and return its path; ``console_url``
+    (the demo environment in the operator console) is linked at the top."""
     out_dir.mkdir(parents=True, exist_ok=True)
     scene = _Scene(scene_dir, {c["id"]: c for c in comparison["clusters"]}, classes, out_dir)
     parts = [
@@ -163,6 +165,13 @@ def write_report(
         "table{border-collapse:collapse} td,th{border:1px solid #ccc;padding:4px 8px}"
         "</style></head><body><h1>twindelta demo report</h1>"
     ]
+    if console_url:
+        url = html.escape(console_url, quote=True)
+        parts.append(
+            f"<p>Open the demo environment in the operator console: <a href='{url}'>{url}</a> "
+            "(while the service runs: <code>make demo KEEP=1</code>; sign in with the key the "
+            "demo printed).</p>"
+        )
     parts.append(
         "<p>Red: the changed cluster re-projected into the capture's images. Blue: the "
         "detector's boxes (thick: the identified class).</p>"

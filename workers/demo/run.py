@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import argparse
 import shutil
+import signal
+import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -88,47 +90,103 @@ def _comparison(client: httpx.Client, comparison_id: str | None) -> dict[str, An
 
 @dataclass(frozen=True)
 class _Run:
-    """What the service answered: the finished comparison and the environment's twin state."""
+    """What the service answered: the environment, the finished comparison and its twin
+    state."""
 
+    environment_id: str
     comparison: dict[str, Any]
     state: dict[str, Any]
 
 
 def _run_service(
-    out: Path, scene_dir: Path, scenario: str, classes: list[str], timings: dict[str, float]
+    client: httpx.Client,
+    scene_dir: Path,
+    scenario: str,
+    classes: list[str],
+    timings: dict[str, float],
 ) -> _Run:
-    """Steps 2-4 against the embedded service; ``timings`` gets one entry per step (s)."""
-    print("2. starting the embedded service (SQLite, file-system broker, local storage)")
-    with embedded_service(out / "data", ADMIN_KEY, out / "service.log") as client:
-        t = time.monotonic()
-        print("3. creating the object library")
-        _object_library(client, scene_dir, classes)
-        timings["object library"] = time.monotonic() - t
+    """Steps 3-4 against the running service; ``timings`` gets one entry per step (s)."""
+    t = time.monotonic()
+    print("3. creating the object library")
+    _object_library(client, scene_dir, classes)
+    timings["object library"] = time.monotonic() - t
 
-        env = check(
-            client.post(
-                "/v1/environments",
-                json={
-                    "name": f"demo-{scenario}",
-                    "classes": classes,
-                    "reference": read_json(scene_dir / "reference.json"),
-                },
-            ),
-            201,
+    env = check(
+        client.post(
+            "/v1/environments",
+            json={
+                "name": f"demo-{scenario}",
+                "classes": classes,
+                "reference": read_json(scene_dir / "reference.json"),
+            },
+        ),
+        201,
+    )
+    print(f"4. environment {env['id']} with classes {classes}")
+
+    snaps = []
+    for capture in ("before", "after"):
+        t = time.monotonic()
+        snaps.append(_snapshot(client, env["id"], scene_dir, capture))
+        timings[f"reconstruct {capture}"] = time.monotonic() - t
+
+    t = time.monotonic()
+    comparison = _comparison(client, snaps[1]["comparison"])
+    timings["compare + pose"] = time.monotonic() - t
+    state = check(client.get(f"/v1/environments/{env['id']}/state"), 200)
+    return _Run(env["id"], comparison, state)
+
+
+def console_url(base_url: str, environment_id: str) -> str:
+    """The operator console's page of an environment (served by the API at /ui/)."""
+    return f"{base_url.rstrip('/')}/ui/#/environments/{environment_id}"
+
+
+def _console_keys(client: httpx.Client) -> str:
+    """A read-only key for looking without acting (the admin key may upload and re-run)."""
+    created = check(client.post("/v1/keys", json={"name": "demo viewer", "scopes": ["read"]}), 201)
+    return str(created["key"])
+
+
+def _print_console(url: str, read_key: str, keep: bool, out: Path) -> None:
+    print(f"\nconsole: {url}")
+    print(f"   sign in with the admin key {ADMIN_KEY}")
+    print(f"   or the read-only key       {read_key}")
+    if keep:
+        print("   the service keeps running (KEEP=1): open the URL, press Ctrl-C to stop it")
+    else:
+        print(
+            "   the service has stopped; to open the console run `make demo KEEP=1`, or serve "
+            f"this demo's data again: TWINDELTA_DATA_DIR={out / 'data'} make serve "
+            "(then the same page on port 8000)"
         )
-        print(f"4. environment {env['id']} with classes {classes}")
 
-        snaps = []
-        for capture in ("before", "after"):
-            t = time.monotonic()
-            snaps.append(_snapshot(client, env["id"], scene_dir, capture))
-            timings[f"reconstruct {capture}"] = time.monotonic() - t
 
-        t = time.monotonic()
-        comparison = _comparison(client, snaps[1]["comparison"])
-        timings["compare + pose"] = time.monotonic() - t
-        state = check(client.get(f"/v1/environments/{env['id']}/state"), 200)
-    return _Run(comparison, state)
+def _port_free(port: int) -> bool:
+    """Whether nothing listens on 127.0.0.1:``port`` (a service already there would answer
+    the demo's requests instead of its own)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+def _wait_for_interrupt() -> None:
+    """Sleep until Ctrl-C (SIGINT) or SIGTERM; the caller then stops the service."""
+
+    def stop(_signum: int, _frame: Any) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)  # also when started in the background (inherited ignore)
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        print("\nstopping the service")
 
 
 def _print_changes(matches: list[Match], extra: list[dict[str, Any]]) -> None:
@@ -185,7 +243,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--preset", default="demo")
     parser.add_argument("--out", type=Path, default=Path("demo-output"))
+    parser.add_argument(
+        "--keep",
+        action="store_true",
+        help="keep the service running at the end (open the console) until Ctrl-C",
+    )
+    parser.add_argument("--port", type=int, default=None, help="default: a free port")
     args = parser.parse_args(argv)
+    if args.port is not None and not _port_free(args.port):
+        raise SystemExit(
+            f"port {args.port} is in use: stop what listens there or give another "
+            "(make demo KEEP=1 PORT=8001)"
+        )
     out: Path = args.out.resolve()
     shutil.rmtree(out, ignore_errors=True)
     timings: dict[str, float] = {}
@@ -198,14 +267,21 @@ def main(argv: list[str] | None = None) -> int:
     classes: list[str] = truth["classes"]
     timings["generate scene"] = time.monotonic() - t0
 
-    run = _run_service(out, scene_dir, args.scenario, classes, timings)
-    matches, extra = match_changes(truth, run.comparison["changes"])
-    _print_changes(matches, extra)
-    print(f"\n   twin state: {len(run.state['objects'])} instance(s)")
-    timings["total"] = time.monotonic() - t0
-    report = write_report(
-        out / "report", scene_dir, run.comparison, matches, extra, classes, timings
-    )
-    print(f"\nreport: {report}")
-    print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()))
-    return _verdict(matches, extra)
+    print("2. starting the embedded service (SQLite, file-system broker, local storage)")
+    with embedded_service(out / "data", ADMIN_KEY, out / "service.log", port=args.port) as client:
+        run = _run_service(client, scene_dir, args.scenario, classes, timings)
+        matches, extra = match_changes(truth, run.comparison["changes"])
+        _print_changes(matches, extra)
+        print(f"\n   twin state: {len(run.state['objects'])} instance(s)")
+        timings["total"] = time.monotonic() - t0
+        url = console_url(str(client.base_url), run.environment_id)
+        report = write_report(
+            out / "report", scene_dir, run.comparison, matches, extra, classes, timings, url
+        )
+        print(f"\nreport: {report}")
+        print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in timings.items()))
+        verdict = _verdict(matches, extra)
+        _print_console(url, _console_keys(client), args.keep, out)
+        if args.keep:
+            _wait_for_interrupt()
+    return verdict

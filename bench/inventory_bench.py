@@ -99,7 +99,7 @@ def views_boxed(data: CaptureData, classes: list[str], placement: dict[str, Any]
 def centre_of(pose: Any, model: PreparedModel) -> np.ndarray:
     """(3,) the model's centre posed by 4×4 ``pose`` (a symmetric object's origin may lie
     off its axis: centres, not origins, say where an object is)."""
-    return np.asarray(pose, dtype=np.float64) @ np.append(model.centre_object, 1.0)
+    return np.asarray(np.asarray(pose, dtype=np.float64) @ np.append(model.centre_object, 1.0))
 
 
 def _pairs(

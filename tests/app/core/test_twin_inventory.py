@@ -93,6 +93,11 @@ def succeed_comparison(
     twin.advance(session, env.id)
 
 
+def x_of(instance: TwinInstance) -> float:
+    assert instance.pose is not None
+    return instance.pose[0][3]
+
+
 def history(session: Session, instance_id: str) -> list[str]:
     return [
         p.change_type
@@ -120,7 +125,7 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
         [found("drill", pose_at(0.1)), found("drill", pose_at(-0.6)), found("bowl", pose_at(0.5))],
     )
     current = twin.current(session, env.id)
-    assert sorted((i.object_name, i.pose[0][3]) for i in current) == [
+    assert sorted((i.object_name, x_of(i)) for i in current) == [
         ("bowl", 0.5),
         ("drill", -0.6),
         ("drill", 0.1),
@@ -158,7 +163,7 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
     )
     succeed_comparison(session, env, first, second)
     current = twin.current(session, env.id)
-    by_x = {round(i.pose[0][3], 3): i for i in current}
+    by_x = {round(x_of(i), 3): i for i in current}
     assert sorted(by_x) == [-0.6, 0.1, 0.53, 1.5]  # the unverified bowl is not added
     assert history(session, by_x[0.1].id) == ["inventoried"]  # jitter: no record
     assert history(session, by_x[0.53].id) == ["seeded", "inventoried", "drifted"]

@@ -4,6 +4,7 @@ and on a table top seen by a ring of cameras, YOLO boxes from the true objects."
 from __future__ import annotations
 
 import json
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,7 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> dict[str, PreparedModel]
     out = {}
     for name, size in SIZES.items():
         path = work / f"{name}.ply"
-        o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh.create_box(*size))
+        o3d.io.write_triangle_mesh(path, o3d.geometry.TriangleMesh.create_box(*size))
         out[name] = prepare_model(path, work / name, name=name)
         MODEL_DIRS[name] = work / name
     return out
@@ -130,7 +131,7 @@ def test_every_object_is_found_with_its_class_and_place(
     assert result.stats["objects"] == 4
 
 
-def _lift_boxes(dets: dict[str, np.ndarray], raised: Obj) -> dict[str, np.ndarray]:
+def _lift_boxes(dets: Mapping[str, np.ndarray], raised: Obj) -> dict[str, np.ndarray]:
     """The YOLO rows of ``dets`` with the raised object's boxes re-made at table height."""
     lifted = Obj(raised.class_id, raised.xy, raised.parts)
     corners = lifted.corners() + np.array([0.0, 0.0, 0.6])

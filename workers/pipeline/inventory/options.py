@@ -54,8 +54,9 @@ class InventoryOptions:
     band_sigmas: float = 3.0
     # ... and at least this high, metres; lower to keep flat objects' lower parts
     band_min_m: float = 0.004
-    # growth band (hysteresis, the compare stage's growth): × the band; 0 = no growth
-    grow_band_factor: float = 0.5
+    # growth band (hysteresis, the compare stage's growth and skirt pruning): × the band;
+    # 0 = no growth; lower reaches flat objects' feet but more of the floor's noise
+    grow_band_factor: float = 0.8
     # points higher above their support than this × the largest diameter are not objects
     max_height_diameters: float = 1.1
     # segments longer than this × the largest diameter (walls, furniture) are dropped

@@ -170,9 +170,10 @@ def get_pointcloud(
         Query(
             ge=decimate.MIN_POINTS,
             le=decimate.MAX_POINTS,
-            description="at most this many points, drawn evenly with a fixed seed (the same "
-            "N gives the same file; a smaller N a subset of a larger): binary little-endian "
-            "PLY, float x y z and uchar red green blue, made once and kept (for a browser)",
+            description="at most this many points (N rounded down to 1, 1.25, 1.5, 2, 2.5, "
+            "3, 4, 5, 6 or 8 × 10^k), drawn evenly with a fixed seed (the same N gives the "
+            "same file; a smaller N a subset of a larger): binary little-endian PLY, float x "
+            "y z and uchar red green blue, made once and kept (for a browser)",
         ),
     ] = None,
 ) -> Response:

@@ -35,6 +35,9 @@ from app.core.storage import LocalStorage
 SEED = 20
 MIN_POINTS = 1_000
 MAX_POINTS = 5_000_000
+# A requested N is rounded down to m·10^k for m in STEPS, so a snapshot keeps at most
+# 10 cached files a decade (about 2.5 times the largest one in all), whatever is asked.
+STEPS = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0)
 GREY = 180  # the colour of a cloud that has none
 RECORD = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
 
@@ -46,6 +49,12 @@ class Decimated:
     key: str
     n_points: int
     total_points: int
+
+
+def level(max_points: int) -> int:
+    """The largest m·10^k ≤ ``max_points`` (m in :data:`STEPS`; ``max_points`` ≥ 1)."""
+    k = len(str(int(max_points))) - 1
+    return max(int(m * 10**k) for m in STEPS if m * 10**k <= max_points)
 
 
 def decimated_key(pointcloud_key: str, n_points: int) -> str:
@@ -93,12 +102,13 @@ def total_points(storage: LocalStorage, pointcloud_key: str) -> int:
 
 
 def ensure_decimated(storage: LocalStorage, pointcloud_key: str, max_points: int) -> Decimated:
-    """The cached decimated cloud of at most ``max_points`` points of the PLY at
-    ``pointcloud_key``, made first unless a file at least as new as the cloud is there.
+    """The cached decimated cloud of the PLY at ``pointcloud_key`` with :func:`level`
+    (``max_points``) points, or all of them when it has fewer, made first unless a file at
+    least as new as the cloud is there.
     Conflict (409 ``PointCloudUnreadable``) when the cloud cannot be read;
     InsufficientStorage (507) when the disk is full."""
     total = total_points(storage, pointcloud_key)
-    n = min(max_points, total)
+    n = min(level(max_points), total)
     key = decimated_key(pointcloud_key, n)
     source, target = storage.path(pointcloud_key), storage.path(key)
     if _fresh(source, target):

@@ -297,6 +297,13 @@ def test_a_decimated_cloud_is_an_even_deterministic_subset_and_is_cached(
         client.get(url, params={"max_points": 2000}, headers=keys.headers("read")).content
     )
     assert {tuple(p) for p in points} <= {tuple(p) for p in small}
+    # an N between steps is rounded down (at most 10 cached files a decade)
+    between = client.get(url, params={"max_points": 1999}, headers=keys.headers("read"))
+    assert (
+        between.content
+        == client.get(url, params={"max_points": 1500}, headers=keys.headers("read")).content
+    )
+    assert len(read_decimated(between.content)[0]) == 1500
     # more than the cloud holds: every point
     every, _ = read_decimated(
         client.get(url, params={"max_points": 1_000_000}, headers=keys.headers("read")).content

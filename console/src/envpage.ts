@@ -101,6 +101,7 @@ export class EnvironmentPage {
       "div",
       { class: "legend" },
       ...["added", "removed", "moved", "swapped", "unchanged"].map((t) => h("span", {}, h("i", { style: `background:${CHANGE_COLOURS[t]}` }), t)),
+      h("span", {}, h("i", { style: `background:${CHANGE_COLOURS.added};opacity:0.35` }), "unidentified cluster"),
     );
     const viewCard = h("section", { class: "card view" }, h("div", { class: "view-head" }, h("h2", {}, "3D view"), toolbar), h("div", { class: "stage" }, this.canvasBox, this.panelEl, this.viewStatus), legend);
     const side = h("div", { class: "side" }, this.twinEl, this.timelineEl, this.uploadEl);
@@ -201,7 +202,7 @@ export class EnvironmentPage {
 
   private activeJobIds(): string[] {
     const ids = new Set<string>();
-    for (const s of this.snapshots) if (s.job && !["reconstructed", "failed", "cancelled"].includes(s.state)) ids.add(s.job);
+    for (const s of this.snapshots) if (s.job && !["reconstructed", "failed", "cancelled", "deleted"].includes(s.state)) ids.add(s.job);
     for (const c of this.comparisons) if (c.job && !["succeeded", "failed", "cancelled"].includes(c.state)) ids.add(c.job);
     for (const [id, job] of this.jobs) if (!FINAL_JOB_STATES.has(job.state)) ids.add(id);
     return [...ids];
@@ -211,8 +212,8 @@ export class EnvironmentPage {
     if (this.disposed) return;
     const ids = this.activeJobIds();
     // failed snapshots: fetch their jobs once for the error detail
-    for (const s of this.snapshots) if (s.job && s.state === "failed" && !this.jobs.has(s.job)) ids.push(s.job);
-    for (const c of this.comparisons) if (c.job && c.state === "failed" && !this.jobs.has(c.job)) ids.push(c.job);
+    for (const s of this.snapshots) if (s.job && (s.state === "failed" || s.state === "cancelled") && !this.jobs.has(s.job)) ids.push(s.job);
+    for (const c of this.comparisons) if (c.job && (c.state === "failed" || c.state === "cancelled") && !this.jobs.has(c.job)) ids.push(c.job);
     let finished = false;
     await Promise.all(
       ids.map(async (id) => {
@@ -350,16 +351,8 @@ export class EnvironmentPage {
       p = request(`/v1/objects/${objectId}/model`)
         .then((r) => r.arrayBuffer())
         .then((buf) => new GLTFLoader().parseAsync(buf, ""))
-        .then((gltf) => {
-          // The model GLB is in the object frame, metres; a y-up root node (glTF's
-          // convention) is undone so env_from_object applies to object coordinates.
-          const scene = gltf.scene;
-          if (scene.children.length === 1 && scene.children[0].name === "gltf_from_object") {
-            scene.children[0].matrix.identity();
-            scene.children[0].matrix.decompose(scene.children[0].position, scene.children[0].quaternion, scene.children[0].scale);
-          }
-          return scene as THREE.Object3D;
-        })
+        // object frame, metres, +z up: env_from_object applies to it unchanged
+        .then((gltf) => gltf.scene as THREE.Object3D)
         .catch(() => null);
       this.models.set(objectId, p);
     }
@@ -371,6 +364,7 @@ export class EnvironmentPage {
     if (token !== this.loadToken || !this.viewer) return;
     if (model) this.viewer.addModel(model, pose, key, colour, ghost);
     else if (!ghost) this.viewer.addMarker(pose, key, colour);
+    window.__twindelta.modelsDrawn += 1;
     if (this.selectedKey === key) this.viewer.highlight(key);
   }
 
@@ -392,12 +386,13 @@ export class EnvironmentPage {
 
   private onPick(pick: Pick): void {
     if (pick.kind === "frustum") return void this.openPhoto(pick.image, null);
-    this.select(pick.key);
+    this.select(pick.key, true);
   }
 
-  private select(key: string): void {
+  private select(key: string, fromView = false): void {
     this.selectedKey = key;
     this.viewer?.highlight(key);
+    if (!fromView) this.viewer?.focusOn(key);
     for (const row of this.twinEl.querySelectorAll<HTMLElement>("tr[data-key]")) row.classList.toggle("selected", row.dataset.key === key || row.dataset.change === key);
     const [kind, id] = key.split(/:(.*)/s);
     const cmp = this.focus?.comparison;
@@ -571,10 +566,12 @@ export class EnvironmentPage {
     if (!twin) return void el.append(loading("the twin"));
     if (twin.objects.length === 0) return void el.append(empty("The twin has no objects yet."));
     const changes = this.focus?.comparison?.changes ?? [];
+    // the external id column only once the twin platform named an instance
+    const external = twin.objects.some((o) => o.external_id);
     const table = h(
       "table",
       { class: "table", testid: "twin-table" },
-      h("thead", {}, h("tr", {}, h("th", {}, "Object"), h("th", {}, "Instance"), h("th", {}, "External id"), h("th", {}, "Position (m)"), h("th", {}, "Verified"), h("th", {}, "Last change"), h("th", {}, "Last seen"))),
+      h("thead", {}, h("tr", {}, h("th", {}, "Object / instance"), external ? h("th", {}, "External id") : null, h("th", {}, "Position (m)"), h("th", {}, "Verified"), h("th", {}, "Last change"), h("th", {}, "Last seen"))),
     );
     const tbody = h("tbody");
     for (const inst of twin.objects) {
@@ -583,14 +580,13 @@ export class EnvironmentPage {
       const verified = inst.pose_quality?.verified;
       const row = h(
         "tr",
-        { testid: "twin-row", class: "clickable", tabindex: 0, "data-key": `instance:${inst.instance_id}`, "data-change": change ? key : null, "data-object": inst.object },
-        h("td", {}, change ? h("span", { class: "dot", style: `background:${CHANGE_COLOURS[change.type]}` }) : null, inst.object),
-        h("td", { class: "mono" }, shortId(inst.instance_id)),
-        h("td", {}, inst.external_id ?? "—"),
+        { testid: "twin-row", class: "clickable", tabindex: 0, "data-key": `instance:${inst.instance_id}`, "data-instance": inst.instance_id, "data-change": change ? key : null, "data-object": inst.object },
+        h("td", {}, change ? h("span", { class: "dot", style: `background:${CHANGE_COLOURS[change.type]}` }) : null, inst.object, h("div", { class: "mono muted" }, shortId(inst.instance_id))),
+        external ? h("td", {}, inst.external_id ?? "—") : null,
         h("td", { class: "mono" }, inst.pose ? position(inst.pose) : "—"),
         h("td", {}, verified === true ? h("span", { class: "ok" }, "✓ yes") : verified === false ? h("span", { class: "warn" }, "✗ no") : "—"),
         h("td", {}, change ? h("span", { class: `badge ${change.type}` }, change.type) : null, ` ${this.seqOf(inst.since_snapshot)}`),
-        h("td", {}, this.seqOf(lastSeen(inst))),
+        h("td", {}, "last_seen_snapshot" in inst && !inst.last_seen_snapshot ? h("span", { class: "warn" }, "not seen") : this.seqOf(lastSeen(inst))),
       );
       if (this.selectedKey === key) row.classList.add("selected");
       row.addEventListener("click", () => this.select(key));
@@ -624,7 +620,10 @@ export class EnvironmentPage {
           s.state === "reconstructed" ? h("button", { class: "small", onclick: () => void this.setFocus(s), disabled: focused }, focused ? "shown" : "show") : null,
         ),
         job && !FINAL_JOB_STATES.has(job.state) ? this.progress(job) : null,
-        s.state === "failed" && job?.error ? errorBanner(`Job failed: ${job.error.code}`, job.error.detail ?? "") : null,
+        job && !FINAL_JOB_STATES.has(job.state) && canCancel(this.me) && !job.cancel_requested
+          ? h("button", { class: "small danger", testid: "cancel-job", onclick: () => void this.cancel(job) }, "Cancel job")
+          : null,
+        (s.state === "failed" || s.state === "cancelled") && job?.error ? errorBanner(`Job ${job.state}: ${job.error.code}`, job.error.detail ?? "") : null,
         s.state === "reconstructed"
           ? h(
               "div",
@@ -731,8 +730,10 @@ export class EnvironmentPage {
 
 // ---------------------------------------------------------------- small views
 
+/** The newest snapshot whose inventory showed the instance (``last_seen_snapshot``, from
+ * the twin's inventory); "—" where the state does not carry it. */
 function lastSeen(inst: Instance): string | null {
-  return (inst.last_seen_snapshot as string | null | undefined) ?? inst.since_snapshot;
+  return (inst.last_seen_snapshot as string | null | undefined) ?? null;
 }
 
 function position(pose: Matrix4): string {

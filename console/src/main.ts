@@ -8,10 +8,10 @@ import { EnvironmentPage } from "./envpage";
 
 declare global {
   interface Window {
-    __twindelta: { cloudReadyMs: number | null; cloudPoints: number | null; cloudTotalPoints: number | null; cloudSource: string | null };
+    __twindelta: { cloudReadyMs: number | null; cloudPoints: number | null; cloudTotalPoints: number | null; cloudSource: string | null; modelsDrawn: number };
   }
 }
-window.__twindelta = { cloudReadyMs: null, cloudPoints: null, cloudTotalPoints: null, cloudSource: null };
+window.__twindelta = { cloudReadyMs: null, cloudPoints: null, cloudTotalPoints: null, cloudSource: null, modelsDrawn: 0 };
 
 const root = document.getElementById("app")!;
 let current: { dispose(): void } | null = null;

@@ -35,7 +35,7 @@ export class PhotoView {
 
   private onKey(e: KeyboardEvent): void {
     if (!this.current) return;
-    if (e.key === "Escape") this.close();
+    if (e.key === "Escape") return this.close();
     const i = this.current.siblings.indexOf(this.current.name);
     if (e.key === "ArrowRight" && i >= 0 && i + 1 < this.current.siblings.length) this.current.onNavigate(this.current.siblings[i + 1]);
     if (e.key === "ArrowLeft" && i > 0) this.current.onNavigate(this.current.siblings[i - 1]);

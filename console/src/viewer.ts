@@ -186,13 +186,16 @@ export class Viewer {
   setClusters(clusters: ClusterPoints[], typeOfChange: (changeId: string | null) => string | null): void {
     this.clear("clusters");
     for (const c of clusters) {
-      const type = typeOfChange(c.change_id) ?? c.side;
+      const type = typeOfChange(c.change_id);
       const geometry = new THREE.BufferGeometry();
       geometry.setAttribute("position", new THREE.BufferAttribute(new Float32Array(c.positions), 3));
+      // a cluster no change explains (unidentified) is drawn faint, in its side's colour
       const material = new THREE.PointsMaterial({
-        size: 4,
+        size: type ? 4 : 2,
         sizeAttenuation: false,
-        color: new THREE.Color(CHANGE_COLOURS[type] ?? "#ffffff"),
+        color: new THREE.Color(CHANGE_COLOURS[type ?? c.side] ?? "#ffffff"),
+        transparent: !type,
+        opacity: type ? 1 : 0.35,
       });
       const points = new THREE.Points(geometry, material);
       points.name = `cluster-${c.id}`;
@@ -293,6 +296,19 @@ export class Viewer {
         }
       }
     });
+    this.requestRender();
+  }
+
+  /** Orbit around the object drawn under ``key`` (its pose's origin), closer by half. */
+  focusOn(key: string): void {
+    const holder = this.layers.models.children.find((o) => o.name === key);
+    if (!holder) return;
+    const target = new THREE.Vector3().setFromMatrixPosition(holder.matrix);
+    const offset = this.camera.position.clone().sub(this.controls.target).multiplyScalar(0.5);
+    if (offset.length() < 0.5) offset.setLength(0.5);
+    this.controls.target.copy(target);
+    this.camera.position.copy(target).add(offset);
+    this.controls.update();
     this.requestRender();
   }
 

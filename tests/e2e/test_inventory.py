@@ -42,6 +42,7 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
     wait_until(lambda: twin_seq() == 1, 120, "the baseline", every_s=0.3)
     state = client.get(f"/v1/environments/{env_id}/state").json()["objects"]
     ids = {o["object"]: o["instance_id"] for o in state}
+    assert {(o["last_seen_snapshot"], o["seen"]) for o in state} == {(first, True)}
     assert sorted(ids) == ["bowl", "drill"]
     assert {o["object"]: o["pose"][0][3] for o in state} == {"drill": 0.2, "bowl": 0.5}
     for instance_id in ids.values():
@@ -63,6 +64,8 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
         assert [p["change_type"] for p in h["poses"]] == ["inventoried"]  # no jitter records
     confirmed = client.get(f"/v1/snapshots/{second}/objects").json()
     assert {o["instance_id"] for o in confirmed} == set(ids.values())
+
+    assert {(o["last_seen_snapshot"], o["seen"]) for o in state} == {(second, True)}
 
     upload(client, env_id, SCENES[2], "inventory-c")
     wait_until(lambda: twin_seq() == 3, 120, "the removal", every_s=0.3)

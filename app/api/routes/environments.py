@@ -26,6 +26,7 @@ from app.core import (
     comparisons,
     environment_summary,
     environments,
+    inventory,
     retention,
     snapshots,
     twin,
@@ -188,6 +189,12 @@ def get_state(
             media_type=GLB_MEDIA_TYPE,
             headers={"Content-Disposition": f'attachment; filename="{name}"', "Vary": "Accept"},
         )
+    # sightings of the twin as it stands only: a past state's would name later snapshots
+    sightings = (
+        {}
+        if state.at_snapshot
+        else inventory.last_seen(session, (i.instance_id for i in state.instances))
+    )
     return TwinStateRead(
         environment=environment_id,
         twin=TwinProgressRead.of(twin.progress(session, env)),
@@ -203,6 +210,12 @@ def get_state(
                 since_snapshot=i.since_snapshot,
                 created_snapshot=i.created_snapshot,
                 created_at=i.created_at,
+                last_seen_snapshot=sightings.get(i.instance_id),
+                seen=(
+                    sightings.get(i.instance_id) == state.snapshot_id
+                    if state.snapshot_id and not state.at_snapshot
+                    else None
+                ),
             )
             for i in state.instances
         ],

@@ -126,6 +126,16 @@ class InstanceRead(BaseModel):
         "before the twin reflected any snapshot; it stands from the start)"
     )
     created_at: datetime
+    last_seen_snapshot: str | None = Field(
+        default=None,
+        description="the newest snapshot whose inventory showed the instance (null: none "
+        "has; only in the state)",
+    )
+    seen: bool | None = Field(
+        default=None,
+        description="whether the snapshot the state reflects showed it (false: the cameras "
+        "did not see it, its state is kept as it was; only in the state)",
+    )
 
     @classmethod
     def of(cls, i: TwinInstance) -> InstanceRead:
@@ -196,8 +206,9 @@ class PoseRecord(BaseModel):
     )
     comparison: str | None
     change_type: str = Field(
-        description="a comparison's change (added, removed, moved, swapped) or a change made "
-        "through the API: seeded, corrected, retired"
+        description="a comparison's change (added, removed, moved, swapped), a change made "
+        "through the API (seeded, corrected, retired) or an inventory's (inventoried: found "
+        "by a snapshot's inventory; drifted: its pose moved beyond the estimate's noise)"
     )
     pose: Pose | None
     at: datetime

@@ -30,6 +30,7 @@ from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from tests.app.api.test_export_api import OBJ_TRIANGLE, box_cm, ply_bytes, upload_object
 from tests.app.conftest import Keys
+from tests.app.core.export.validator import assert_valid
 
 W, H, F = 640, 480, 500.0
 # camera 2 m above the origin looking down: x_cam = x_env, y_cam = -y_env, z_cam = -z_env
@@ -525,6 +526,8 @@ def test_a_library_model_is_glb_in_its_object_frame_in_metres(
     r = client.get(f"/v1/objects/{object_id}/model", headers=keys.headers("read"))
     assert r.status_code == 200, r.text
     assert r.headers["content-type"] == "model/gltf-binary"
+    (tmp_path / "model.glb").write_bytes(r.content)
+    assert_valid(tmp_path / "model.glb")  # the Khronos validator: no errors or warnings
     scene = trimesh.load(io.BytesIO(r.content), file_type="glb", force="scene", process=False)
     (mesh,) = scene.geometry.values()
     box = np.asarray(box_cm().vertices) * 0.01  # the file is in centimetres

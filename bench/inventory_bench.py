@@ -16,7 +16,7 @@ is scored against the capture's true placements:
 - **twin**: the service's rules run on the world's two snapshots (baseline from the first
   inventory; the comparison's changes posed as the comparison job does; the second
   inventory confirms, refreshes beyond :data:`app.core.inventory.DRIFT_TRANSLATION_M` /
-  ``DRIFT_ROTATION_DEG``, adds verified objects nothing accounts for) against the after
+  ``DRIFT_ROTATION_DEG``, adds posed objects nothing accounts for) against the after
   capture's truth: every object with class and pose within 1 cm / 3°, nothing extra;
 - **time**: the inventory's wall and CPU seconds per capture beside the compare stage's on
   the same pair in the same run (the baseline), on this machine's cores.
@@ -287,7 +287,7 @@ def twin_check(
     added = [
         {"id": f"inv2-{j}", "object": f["object"], "pose": f["pose"]}
         for j, f in enumerate(found)
-        if j not in paired and (f["pose_quality"] or {}).get("verified")
+        if j not in paired
     ]
     current += added
     # against the truth of the after capture

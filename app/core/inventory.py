@@ -13,8 +13,8 @@ When the twin reaches the snapshot (app.core.twin.advance):
   ``last_seen_snapshot`` moves on); the pose is refreshed, with a record ``drifted``, only
   when the inventory's verified pose is further from the twin's than the pose estimate's
   noise (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a
-  slow drift no single comparison flagged; a verified object no instance accounts for is
-  added (``inventoried``). An instance no object confirms keeps its state: not seen.
+  slow drift no single comparison flagged; a posed object no instance accounts for is
+  added (``inventoried``), as the first snapshot would have. An instance no object confirms keeps its state: not seen.
 
 Never commits.
 """
@@ -330,7 +330,7 @@ def confirm(
             out["drifted"].append(instance)
     paired = {id(obj) for _, obj in matched}
     for obj in found:
-        if id(obj) in paired or not (obj.pose_quality or {}).get("verified"):
+        if id(obj) in paired or obj.pose is None:
             continue
         instance = _create(session, env, head.id, comparison_id, obj)
         obj.instance_id = instance.id

@@ -149,7 +149,8 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
 
     # seq 2: the comparison found nothing (drifts under its threshold); the inventory sees
     # the first drill 2 mm off (noise: no record), the bowl 3 cm off (a drift: refreshed),
-    # a new drill where no instance stands, and not the second drill (not seen)
+    # a new drill and a new bowl where no instance stands, a bowl it could not pose, and
+    # not the second drill (not seen)
     second = snapshot(session, env, 2)
     reconstructed(
         session,
@@ -159,12 +160,14 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
             found("bowl", pose_at(0.53, yaw_deg=1.0)),
             found("drill", pose_at(1.5)),
             found("bowl", pose_at(-1.5), verified=False),
+            {**found("bowl", pose_at(-2.5)), "pose": None},
         ],
     )
     succeed_comparison(session, env, first, second)
     current = twin.current(session, env.id)
     by_x = {round(x_of(i), 3): i for i in current}
-    assert sorted(by_x) == [-0.6, 0.1, 0.53, 1.5]  # the unverified bowl is not added
+    # the unverified bowl is added as the first snapshot would have; the unposed one is not
+    assert sorted(by_x) == [-1.5, -0.6, 0.1, 0.53, 1.5]
     assert history(session, by_x[0.1].id) == ["inventoried"]  # jitter: no record
     assert history(session, by_x[0.53].id) == ["seeded", "inventoried", "drifted"]
     assert history(session, by_x[1.5].id) == ["inventoried"]

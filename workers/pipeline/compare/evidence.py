@@ -10,6 +10,10 @@ its place, and the twin instance it lies on.
   a twin instance, takes that instance's class when the class still scores a lower
   threshold: the twin says what stood there, the detector agrees in part (a small or flat
   object's cluster is too loose a box to reach the identification threshold).
+- *Named at a removal's place*: an added cluster the detector does not name, standing
+  where an identified object was removed, takes its best other class at the same lower
+  threshold (a swap in place: the new object's cluster holds the floor the old one
+  covered, a looser box); one cluster per removal, the best scoring.
 
 Points in the environment frame (metres), pixels in the scored capture's images.
 """
@@ -137,4 +141,40 @@ def name_by_twin(
             if inst is not None and c.metrics.get(inst.object_name, 0.0) >= low:
                 c = dataclasses.replace(c, object_name=inst.object_name)
         out.append(c)
+    return out
+
+
+def _best_other(c: ClusterResult, not_class: str) -> tuple[str, float]:
+    """The cluster's best-scoring class other than ``not_class`` and its metric."""
+    others = [(k, v) for k, v in c.metrics.items() if k != not_class]
+    return max(others, key=lambda kv: kv[1], default=("", 0.0))
+
+
+def name_at_removals(
+    clusters: Sequence[ClusterResult],
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions,
+) -> list[ClusterResult]:
+    """``clusters`` with, for each identified removed cluster, the best unidentified added
+    cluster within ``swap_distance_factor × max(diameters)`` of it named by its best other
+    class when that scores at least ``twin_identify_threshold`` (unchanged when None)."""
+    low = options.twin_identify_threshold
+    if low is None:
+        return list(clusters)
+    out = list(clusters)
+    for r in [c for c in clusters if c.side == "removed" and c.object_name is not None]:
+        best: tuple[float, int, str] | None = None
+        for i, c in enumerate(out):
+            if c.side != "added" or c.object_name is not None:
+                continue
+            name, metric = _best_other(c, str(r.object_name))
+            reach = options.swap_distance_factor * max(
+                float(class_diameters_m.get(str(r.object_name), 0.0)),
+                float(class_diameters_m.get(name, 0.0)),
+            )
+            near = float(np.linalg.norm(c.centroid - r.centroid)) < reach
+            if near and metric >= low and (best is None or metric > best[0]):
+                best = (metric, i, name)
+        if best is not None:
+            out[best[1]] = dataclasses.replace(out[best[1]], object_name=best[2])
     return out

@@ -192,7 +192,8 @@ class CompareOptions:
     # a swap's clusters lie closer than this × the larger of the two diameters
     swap_distance_factor: float = 0.5
     # a removed cluster the detector does not name takes the class of the twin instance it
-    # lies on when that class scores at least this metric (None: off)
+    # lies on, and an added one standing where an identified object was removed its best
+    # other class, when that class scores at least this metric (None: off)
     twin_identify_threshold: float | None = None
     # an identified cluster left as a plain addition or removal is no change when the
     # other capture's detector names its class at its place with at least this metric

@@ -31,7 +31,7 @@ from workers.pipeline.compare.candidates import (
 )
 from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
-from workers.pipeline.compare.evidence import name_by_twin, still_there
+from workers.pipeline.compare.evidence import name_at_removals, name_by_twin, still_there
 from workers.pipeline.compare.options import PRESETS, CompareOptions
 from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
@@ -213,6 +213,7 @@ def compare_snapshots(
     library = Library(classes=classes, class_diameters_m=class_diameters_m, grow_max_m=reach_m)
     clusters = _both_sides_clusters(before, after, candidates, clouds, maps, library, options)
     clusters = name_by_twin(clusters, twin, class_diameters_m, options)
+    clusters = name_at_removals(clusters, class_diameters_m, options)
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)

@@ -22,7 +22,7 @@ from tests.workers.pipeline.compare_scene import (
     twin_of,
 )
 from workers.pipeline.compare import PRESETS, CaptureData, ClusterResult, compare_snapshots
-from workers.pipeline.compare.evidence import name_by_twin, occurrence_boxes
+from workers.pipeline.compare.evidence import name_at_removals, name_by_twin, occurrence_boxes
 from workers.pipeline.errors import InputError
 
 
@@ -143,3 +143,21 @@ def test_a_flat_removal_is_seen_with_the_finer_seen_check() -> None:
     assert seen_fine > max(100, 5 * seen_coarse)
     assert ("removed", "crate") in _identified(res_fine)
     assert ("removed", "crate") not in _identified(res_coarse)
+
+
+def test_an_added_cluster_at_a_removal_takes_its_best_other_class() -> None:
+    options = PRESETS["default"].replace(twin_identify_threshold=0.3)
+    removed = dataclasses.replace(
+        _cluster("removed", (0.0, 0.0, 0.15), {"crate": 0.8, "bin": 0.0, "cart": 0.0}),
+        id=10,
+        object_name="crate",
+    )
+    best = _cluster("added", (0.05, 0.0, 0.2), {"crate": 0.1, "bin": 0.38, "cart": 0.0})
+    second = _cluster("added", (-0.05, 0.0, 0.2), {"crate": 0.0, "bin": 0.33, "cart": 0.0})
+    weak = _cluster("added", (0.0, 0.05, 0.2), {"crate": 0.0, "bin": 0.0, "cart": 0.2})
+    far = _cluster("added", (1.5, 0.0, 0.2), {"crate": 0.0, "bin": 0.45, "cart": 0.0})
+    named = name_at_removals([removed, best, second, weak, far], DIAMETERS, options)
+    # one object per removal: the best-scoring fragment only; the far one is no swap
+    assert [c.object_name for c in named] == ["crate", "bin", None, None, None]
+    off = PRESETS["default"].replace(twin_identify_threshold=None)
+    assert name_at_removals([removed, best], DIAMETERS, off)[1].object_name is None

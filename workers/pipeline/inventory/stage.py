@@ -28,6 +28,7 @@ from workers.pipeline.compare.data import CaptureData
 from workers.pipeline.compare.results import Change, ClusterResult
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
 from workers.pipeline.compare.stage import render_depth_maps
+from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import InputError
 from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptions
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
@@ -154,53 +155,59 @@ def _segment_json(cluster: ClusterResult) -> dict[str, Any]:
     return {**cluster.summary_json(), "metrics": dict(cluster.metrics)}
 
 
-def take_inventory(
+@dataclass
+class _Stopwatch:
+    """Wall seconds per step."""
+
+    timings: dict[str, float] = field(default_factory=dict)
+    t0: float = field(default_factory=time.perf_counter)
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name] = round(now - self.t0, 3)
+        self.t0 = now
+
+
+@dataclass(frozen=True, eq=False)
+class _Segments:
+    """What segmentation leaves for posing: the supports, each point's support index, the
+    segments (identified or not), the z-buffers and the counts of the stats."""
+
+    supports: tuple[Support, ...]
+    owner: IntArray
+    segments: list[ClusterResult]
+    maps: list[DepthMap]
+    counts: dict[str, Any]
+
+
+def _segment(
     capture: CaptureData,
     classes: Sequence[str],
     class_diameters_m: Mapping[str, float],
-    load_model: Callable[[str], PreparedModel],
-    options: InventoryOptions = INVENTORY_PRESETS["default"],
-    progress: Progress | None = None,
-) -> InventoryResult:
-    """Every library object ``capture`` shows (environment frame, z up, metres).
-
-    ``classes[i]`` is detector class id i; ``class_diameters_m`` the diameters of the
-    library objects that have a prepared model (their segments are posed;
-    ``load_model(name)`` is called at most once per class). ``progress(stage, fraction)``
-    may raise Cancelled. Raises ShapeError/InputError for bad inputs.
-    """
-    report: Progress = progress or (lambda _stage, _fraction: None)
-    _check(classes, class_diameters_m)
-    compare_options, pose_options = options.compare_options(), options.pose_options()
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal t0
-        now = time.perf_counter()
-        timings[name] = round(now - t0, 3)
-        t0 = now
-
+    options: InventoryOptions,
+    report: Progress,
+    watch: _Stopwatch,
+) -> _Segments | None:
+    """Supports → standing points → the compare stage's clusters and identification; None
+    when the cloud has no support."""
     points = capture.points_env
-    max_d = max(class_diameters_m.values(), default=0.0)
-    empty = InventoryResult(options, (), (), (), {"points": len(points), "timings_s": timings})
-    if len(points) < 10 or max_d <= 0:
-        return empty
+    compare_options = options.compare_options()
+    max_d = max(class_diameters_m.values())
     report("inventory.supports", 0.0)
     supports = find_supports(points, max_d, options)
-    lap("supports")
+    watch.lap("supports")
     if not supports:
-        return InventoryResult(options, (), (), (), {"points": len(points), "timings_s": timings})
+        return None
     strict, low, owner = _standing(points, supports, options.max_height_diameters * max_d, options)
     spacing = median_spacing_m(points, compare_options.spacing_sample, options.seed)
     radius = compare_options.cluster_radius_factor * spacing
     candidates = _not_oversized(
         points, strict, radius, options.max_extent_diameters * max_d, compare_options
     )
-    lap("standing")
+    watch.lap("standing")
     report("inventory.segments", 0.2)
     maps = render_depth_maps(capture, compare_options)
-    lap("zbuffers")
+    watch.lap("zbuffers")
     library = Library(
         classes=list(classes),
         class_diameters_m=dict(class_diameters_m),
@@ -217,10 +224,37 @@ def take_inventory(
         first_id=1,
     )
     segments = side_clusters(side, library, compare_options) if len(candidates) else []
-    lap("segments_identify")
-    named = [c for c in segments if c.object_name is not None]
-    report("inventory.pose", 0.4)
-    scene = SceneCloud.create(points, colors=capture.colors) if named else None
+    watch.lap("segments_identify")
+    counts = {
+        "spacing_m": spacing,
+        "standing_points": len(strict),
+        "candidate_points": len(candidates),
+        "segments": len(segments),
+    }
+    return _Segments(tuple(supports), owner, segments, maps, counts)
+
+
+def _support_of(cluster: ClusterResult, seg: _Segments) -> str | None:
+    """The support most of the cluster's points stand on."""
+    votes = seg.owner[cluster.indices]
+    votes = votes[votes >= 0]
+    return seg.supports[int(np.bincount(votes).argmax())].name if len(votes) else None
+
+
+def _pose_segments(
+    capture: CaptureData,
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    load_model: Callable[[str], PreparedModel],
+    seg: _Segments,
+    options: InventoryOptions,
+    report: Progress,
+) -> tuple[list[InventoryObject], list[dict[str, Any]]]:
+    """Each identified segment posed as the pose stage poses a change; those whose posed
+    model misses the detector's boxes are rejected (``require_reprojection``)."""
+    named = [c for c in seg.segments if c.object_name is not None]
+    pose_options = options.pose_options()
+    scene = SceneCloud.create(capture.points_env, colors=capture.colors) if named else None
     prepared: dict[str, PreparedModel] = {}
     found: list[InventoryObject] = []
     rejected: list[dict[str, Any]] = []
@@ -229,30 +263,14 @@ def take_inventory(
         name = str(cluster.object_name)
         ident = cluster.identification_json(name)
         ident.pop("object", None)
-        support_votes = owner[cluster.indices]
-        support_votes = support_votes[support_votes >= 0]
-        support = (
-            supports[int(np.bincount(support_votes).argmax())].name if len(support_votes) else None
-        )
         pose: dict[str, Any] = {}
         if name in class_diameters_m and scene is not None:
             if name not in prepared:
                 prepared[name] = load_model(name)
-            change = Change(
-                id=f"segment-{cluster.id}",
-                type="added",
-                object_name=name,
-                instance_id=None,
-                cluster=cluster,
-            )
+            change = Change(f"segment-{cluster.id}", "added", name, None, cluster)
+            class_id = list(classes).index(name)
             pose = pose_change(
-                change,
-                prepared[name],
-                scene,
-                capture,
-                list(classes).index(name),
-                maps,
-                pose_options,
+                change, prepared[name], scene, capture, class_id, seg.maps, pose_options
             )
         quality = pose.get("pose_quality")
         passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
@@ -276,24 +294,51 @@ def take_inventory(
                 identification=ident,
                 centroid_env=np.asarray(pose.get("centroid_env", cluster.centroid), float),
                 cluster=_segment_json(cluster),
-                support=support,
+                support=_support_of(cluster, seg),
             )
         )
+    return found, rejected
+
+
+def take_inventory(
+    capture: CaptureData,
+    classes: Sequence[str],
+    class_diameters_m: Mapping[str, float],
+    load_model: Callable[[str], PreparedModel],
+    options: InventoryOptions = INVENTORY_PRESETS["default"],
+    progress: Progress | None = None,
+) -> InventoryResult:
+    """Every library object ``capture`` shows (environment frame, z up, metres).
+
+    ``classes[i]`` is detector class id i; ``class_diameters_m`` the diameters of the
+    library objects that have a prepared model (their segments are posed;
+    ``load_model(name)`` is called at most once per class; none: nothing is found).
+    ``progress(stage, fraction)`` may raise Cancelled. Raises ShapeError/InputError for bad
+    inputs.
+    """
+    report: Progress = progress or (lambda _stage, _fraction: None)
+    _check(classes, class_diameters_m)
+    watch = _Stopwatch()
+    points = capture.points_env
+    stats: dict[str, Any] = {"points": len(points), "timings_s": watch.timings}
+    if len(points) < 10 or not class_diameters_m:
+        return InventoryResult(options, (), (), (), stats)
+    seg = _segment(capture, classes, class_diameters_m, options, report, watch)
+    if seg is None:
+        return InventoryResult(options, (), (), (), stats)
+    found, rejected = _pose_segments(
+        capture, classes, class_diameters_m, load_model, seg, options, report
+    )
     objects, duplicates = _one_per_instance(found, class_diameters_m, options)
     rejected.extend(duplicates)
-    lap("pose")
+    watch.lap("pose")
     report("inventory.pose", 1.0)
-    stats = {
-        "points": len(points),
-        "spacing_m": spacing,
-        "standing_points": len(strict),
-        "candidate_points": len(candidates),
-        "segments": len(segments),
-        "identified_segments": len(named),
-        "objects": len(objects),
-        "timings_s": timings,
-    }
-    return InventoryResult(options, tuple(objects), tuple(rejected), tuple(supports), stats)
+    stats.update(
+        seg.counts,
+        identified_segments=sum(1 for c in seg.segments if c.object_name is not None),
+        objects=len(objects),
+    )
+    return InventoryResult(options, tuple(objects), tuple(rejected), seg.supports, stats)
 
 
 def _rank(obj: InventoryObject) -> tuple[float, float]:

@@ -172,6 +172,11 @@ def _colmap(d: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _console(d: dict[str, Any]) -> dict[str, Any]:
+    keys = ("snapshot_points", "decimated_median_ms", "full_median_ms", "within_target")
+    return {**{k: d.get(k) for k in keys}, "script_gzip_kb": _get(d, "script", "gzip_kb")}
+
+
 def _seed_args(seed: int) -> tuple[str, ...]:
     where = f"{TMP}/reconstruct_seed{seed}"
     return ("--seed", str(seed), "--scene", f"{where}/scene", "--work", f"{where}/work")
@@ -252,6 +257,16 @@ BENCHES: tuple[Bench, ...] = (
     ),
     Bench("c2c", "bench.c2c_bench", "c2c.json", (), ("--quick",), headline=_c2c),
     Bench("colmap", "bench.colmap_bench", "reconstruct_colmap.json", headline=_colmap),
+    # the operator console (#20): a 2 M-point snapshot opened in headless Chromium
+    Bench(
+        "console",
+        "bench.console_bench",
+        "console.json",
+        (),
+        ("--points", "500000", "--runs", "1"),
+        timeout_s=1800,
+        headline=_console,
+    ),
 )
 
 

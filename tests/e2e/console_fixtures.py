@@ -1,0 +1,113 @@
+"""Helpers for the console's browser tests and benchmark: a small generated scene processed by
+the real embedded service, the console built, Debian's Chromium driven by Playwright."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+from app.client import check, poll_job, upload_capture
+from workers.pipeline.synth import generate, preset
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CONSOLE_DIR = REPO_ROOT / "console"
+CONSOLE_DIST = CONSOLE_DIR / "dist"
+CHROMIUM = "/usr/bin/chromium"
+# Software WebGL in a headless browser (no GPU on the test machines).
+CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
+SHOTS_DIR = Path("/tmp/console-shots")
+
+
+def console_sources_newer_than_build() -> bool:
+    """Whether console/dist is missing or older than any source, config or the lock file."""
+    index = CONSOLE_DIST / "index.html"
+    if not index.exists():
+        return True
+    built = index.stat().st_mtime
+    sources = [CONSOLE_DIR / "package-lock.json", CONSOLE_DIR / "index.html"]
+    sources += [p for p in (CONSOLE_DIR / "src").rglob("*") if p.is_file()]
+    sources += list(CONSOLE_DIR.glob("*.config.*")) + list(CONSOLE_DIR.glob("tsconfig*.json"))
+    return any(p.stat().st_mtime > built for p in sources if p.exists())
+
+
+def build_console() -> Path:
+    """Build console/dist with npm (``npm ci`` when node_modules is missing) unless it is
+    up to date; returns the dist folder. Raises RuntimeError naming what is missing."""
+    if not console_sources_newer_than_build():
+        return CONSOLE_DIST
+    npm = shutil.which("npm")
+    if npm is None:
+        raise RuntimeError("npm is not installed: the console needs Node.js 20+ and npm")
+    if not (CONSOLE_DIR / "node_modules").exists():
+        subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=CONSOLE_DIR, check=True)
+    subprocess.run([npm, "run", "build"], cwd=CONSOLE_DIR, check=True)
+    return CONSOLE_DIST
+
+
+@dataclass(frozen=True)
+class ProcessedScene:
+    """One environment with two reconstructed captures of a generated 'moved' scene and
+    their automatic comparison, done."""
+
+    environment_id: str
+    snapshot_ids: list[str]
+    comparison_id: str
+    truth: dict[str, Any]
+    scene_dir: Path  # the generated scene: before/, after/ capture folders, objects/
+
+
+def small_scene_options(n_views: int = 16) -> Any:
+    options = preset("demo")
+    return replace(
+        options,
+        path=replace(options.path, n_views=n_views),
+        camera=replace(options.camera, width=640, height=480, focal_px=520.0),
+    )
+
+
+def process_small_scene(client: httpx.Client, work: Path, name: str = "cell") -> ProcessedScene:
+    """Generate a 16-view 640x480 scene with one moved object, upload the library objects and
+    both captures through ``client`` (admin), wait for the reconstructions and the
+    automatic comparison; raises AssertionError when a job does not succeed."""
+    scene = work / "scene"
+    if not (scene / "ground_truth.json").exists():
+        generate(scene, "moved", 1, small_scene_options())
+    truth = json.loads((scene / "ground_truth.json").read_text())
+    for cls in truth["classes"]:
+        model = (scene / "objects" / f"{cls}.ply").read_bytes()
+        job = check(
+            client.post("/v1/objects", files={"file": (f"{cls}.ply", model)}, data={"name": cls}),
+            202,
+        )["job"]
+        assert poll_job(client, job["id"], cls, 300, quiet=True)["state"] == "succeeded"
+    env = check(
+        client.post(
+            "/v1/environments",
+            json={"name": name, "classes": truth["classes"], "reference": truth["reference"]},
+        ),
+        201,
+    )
+    snapshot_ids = []
+    for capture in ("before", "after"):
+        accepted = upload_capture(client, env["id"], scene / capture)
+        job = poll_job(client, accepted["job"]["id"], capture, 900, quiet=True)
+        assert job["state"] == "succeeded", job
+        snapshot_ids.append(accepted["snapshot"]["id"])
+    comparison_id = check(client.get(f"/v1/snapshots/{snapshot_ids[1]}"), 200)["comparison"]
+    assert comparison_id, "the second snapshot has no automatic comparison"
+    job_id = check(client.get(f"/v1/comparisons/{comparison_id}"), 200)["job"]
+    assert poll_job(client, job_id, "compare", 600, quiet=True)["state"] == "succeeded"
+    return ProcessedScene(env["id"], snapshot_ids, comparison_id, truth, scene)
+
+
+def create_key(client: httpx.Client, name: str, scopes: list[str]) -> str:
+    """A new API key's token (``client`` holds an admin key)."""
+    body = check(client.post("/v1/keys", json={"name": name, "scopes": scopes}), 201)
+    token: str = body["key"]
+    return token

@@ -238,3 +238,17 @@ def test_the_cli_lists_the_objects_of_a_capture_folder(
     assert [s["name"] for s in listed["supports"]] == ["floor"]
     assert main(["inventory", str(tmp_path / "capture"), "--options", "[1]"]) == 2
     assert "must be a JSON object" in capsys.readouterr().err
+
+
+def test_the_floor_is_the_widest_of_the_lowest_slab() -> None:
+    """A floor patch cut off by a wall (beyond it, at the same height) comes first by
+    height but is not the floor."""
+    rng = np.random.default_rng(5)
+    patch = _sample_rect(
+        rng, np.array([-1.0, 2.2, -0.002]), np.array([0.5, 0, 0]), np.array([0, 0.4, 0])
+    )
+    scene = capture([], CAMS, seed=1, extra=np.vstack([wall(rng), patch]))
+    supports = find_supports(scene.points_env, 0.3, InventoryOptions())
+    assert len(supports) == 2
+    floor = next(s for s in supports if s.name == "floor")
+    assert floor.area_m2 > 10 and [s.name for s in supports if s is not floor] == ["surface_1"]

@@ -198,9 +198,17 @@ def find_supports(
                 )
             )
     found.sort(key=lambda s: s.height_m)
+    if not found:
+        return []
+    # the floor: the widest of the lowest slab (a patch of floor cut off by a shelf's panels
+    # or a wall's foot is a support of its own at the same height)
+    lowest = [s for s in found if s.height_m <= found[0].height_m + 2 * options.support_slab_m]
+    floor = max(lowest, key=lambda s: s.area_m2)
     named = []
-    for i, s in enumerate(found):
-        name = "floor" if i == 0 else f"surface_{i}"
+    others = 0
+    for s in found:
+        others += s is not floor
+        name = "floor" if s is floor else f"surface_{others}"
         named.append(
             Support(name, s.plane, s.noise_m, s.origin_xy, s.cell_m, s.footprint, s.n_points)
         )

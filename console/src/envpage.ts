@@ -623,7 +623,8 @@ export class EnvironmentPage {
         job && !FINAL_JOB_STATES.has(job.state) && canCancel(this.me) && !job.cancel_requested
           ? h("button", { class: "small danger", testid: "cancel-job", onclick: () => void this.cancel(job) }, "Cancel job")
           : null,
-        (s.state === "failed" || s.state === "cancelled") && job?.error ? errorBanner(`Job ${job.state}: ${job.error.code}`, job.error.detail ?? "") : null,
+        s.state === "failed" && job?.error ? errorBanner(`Job failed: ${job.error.code}`, job.error.detail ?? "") : null,
+        s.state === "cancelled" ? h("div", { class: "muted" }, `Cancelled${job?.error?.detail ? `: ${job.error.detail}` : ""}.`) : null,
         s.state === "reconstructed"
           ? h(
               "div",
@@ -669,7 +670,8 @@ export class EnvironmentPage {
         ? h("div", { class: "chips" }, c.changes.length === 0 ? h("span", { class: "muted" }, "no changes") : null, ...[...counts].map(([t, n]) => h("span", { class: `badge ${t}` }, `${n} ${t}`)))
         : null,
       running && job ? this.progress(job) : null,
-      (c.state === "failed" || c.state === "cancelled") && job?.error ? errorBanner(`Comparison ${c.state}: ${job.error.code}`, job.error.detail ?? "") : null,
+      c.state === "failed" && job?.error ? errorBanner(`Comparison failed: ${job.error.code}`, job.error.detail ?? "") : null,
+      c.state === "cancelled" ? h("div", { class: "muted" }, `Cancelled${job?.error?.detail ? `: ${job.error.detail}` : ""}.`) : null,
     );
   }
 

@@ -21,7 +21,7 @@ let signinNotice: HTMLElement | null = null;
 onUnauthorised((e) => {
   storeKey(null);
   me = null;
-  signinNotice = errorBanner("Unauthorised", `${e.detail} Sign in again with a valid key.`, e.code);
+  signinNotice = errorBanner("Unauthorised", `${e.detail.replace(/\.?$/, ".")} Sign in again with a valid key.`, e.code);
   location.hash = "#/signin";
   route();
 });

@@ -45,12 +45,12 @@ GRID_M = 0.005  # point spacing: twice the scan stage's default 2.5 mm voxel
 
 
 def room_cloud(n_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """About ``n_points`` on a square floor and four walls (z up, metres, 5 mm grid),
-    coloured like a textured room; (N, 3) float32 and (N, 3) uint8."""
+    """At least ``n_points`` (fewer than 0.1 % more) on a square floor and four walls (z up,
+    metres, 5 mm grid), coloured like a textured room; (N, 3) float32 and (N, 3) uint8."""
     rng = np.random.default_rng(seed)
-    # floor side s and wall height hgt (s/6) in grid steps: s^2 + 4 s hgt = n
-    side = int(np.sqrt(n_points / (1 + 4 / 6)))
-    height = max(1, (n_points - side * side) // (4 * side))
+    # floor side s and wall height hgt (about s/6) in grid steps: s^2 + 4 s hgt >= n
+    side = int(np.ceil(np.sqrt(n_points / (1 + 4 / 6))))
+    height = max(1, int(np.ceil((n_points - side * side) / (4 * side))))
     u = (np.arange(side) + 0.5) * GRID_M
     v = (np.arange(height) + 0.5) * GRID_M
     fx, fy = np.meshgrid(u, u, indexing="ij")

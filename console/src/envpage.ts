@@ -100,8 +100,8 @@ export class EnvironmentPage {
     const legend = h(
       "div",
       { class: "legend" },
-      ...["added", "removed", "moved", "swapped", "unchanged"].map((t) => h("span", {}, h("i", { style: `background:${CHANGE_COLOURS[t]}` }), t)),
-      h("span", {}, h("i", { style: `background:${CHANGE_COLOURS.added};opacity:0.35` }), "unidentified cluster"),
+      ...["added", "removed", "moved", "swapped", "unidentified", "unchanged"].map((t) => h("span", {}, h("i", { style: `background:${CHANGE_COLOURS[t]}` }), t)),
+      h("span", {}, h("i", { style: `background:${CHANGE_COLOURS.added};opacity:0.35` }), "cluster without a change"),
     );
     const viewCard = h("section", { class: "card view" }, h("div", { class: "view-head" }, h("h2", {}, "3D view"), toolbar), h("div", { class: "stage" }, this.canvasBox, this.panelEl, this.viewStatus), legend);
     const side = h("div", { class: "side" }, this.twinEl, this.timelineEl, this.uploadEl);
@@ -430,7 +430,7 @@ export class EnvironmentPage {
 
   private renderChangePanel(change: Change, cmp: Comparison): void {
     const colour = CHANGE_COLOURS[change.type] ?? "#fff";
-    const body = this.panelShell(`${change.type}: ${change.object ?? "unidentified"}`, `change ${shortId(change.id)} · comparison ${this.seqOf(cmp.before)} → ${this.seqOf(cmp.after)}`, colour);
+    const body = this.panelShell(`${change.type}: ${change.object ?? "no library object"}`, `change ${shortId(change.id)} · comparison ${this.seqOf(cmp.before)} → ${this.seqOf(cmp.after)}`, colour);
     append(
       body,
       kv([
@@ -709,7 +709,9 @@ export class EnvironmentPage {
 
   private async rerun(c: Comparison): Promise<void> {
     try {
-      const next = await postJson<Comparison>(`/v1/environments/${this.envId}/comparisons`, { before: c.before, after: c.after, options: c.options ?? undefined });
+      // the same options again: the preset and overrides, not the values they resolved to
+      const { resolved: _resolved, ...options } = c.options ?? {};
+      const next = await postJson<Comparison>(`/v1/environments/${this.envId}/comparisons`, { before: c.before, after: c.after, options });
       this.bannerEl.replaceChildren();
       this.watchJob(await getJson<Job>(`/v1/jobs/${next.job}`));
     } catch (err) {

@@ -12,6 +12,7 @@ export const CHANGE_COLOURS: Record<string, string> = {
   removed: "#e5484d",
   moved: "#f5a524",
   swapped: "#a06cd5",
+  unidentified: "#9aa5b1",
   unchanged: "#4aa3df",
 };
 export const CLEAR_COLOUR = 0x14171c;

@@ -116,7 +116,12 @@ def test_depth_maps_must_match_the_cameras(scene: BoxScene) -> None:
 
 
 def refinement(
-    fitness: float, rmse_m: float, score: float = 1.0, runner_up: float = 0.0
+    fitness: float,
+    rmse_m: float,
+    score: float = 1.0,
+    runner_up: float = 0.0,
+    slack_deg: float = 5.0,
+    turn_deg: float = 1.0,
 ) -> Refinement:
     pose = np.eye(4)
     return Refinement(
@@ -127,6 +132,8 @@ def refinement(
         rmse_m,
         0.005,
         Trial("t", score, fitness, rmse_m, 0.0, pose),
+        rotation_slack_deg=slack_deg,
+        final_turn_deg=turn_deg,
     )
 
 
@@ -142,6 +149,10 @@ def test_verify_fit_names_each_failed_figure() -> None:
         "fitness 0.10 < 0.25": refinement(0.1, 0.001),
         "inlier RMSE 4.0 mm > 3.0 mm": refinement(0.5, 0.004),
         f"{RUNNER_UP_REASON} 0.90 of the best": refinement(0.5, 0.001, 1.0, 0.9),
+        "the scan's residuals hide a turn of 25.0° (> 20.0°)": refinement(
+            0.5, 0.001, slack_deg=25.0
+        ),
+        "the last fit turned the ICP pose by 3.5° (> 3.0°)": refinement(0.5, 0.001, turn_deg=3.5),
     }
     for reason, fit in cases.items():
         result = verify_fit(fit, model, None, v, o)

@@ -36,7 +36,7 @@ from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.candidates import CandidatePool, FitContext, add_round_candidates
 from workers.pipeline.pose.canonical import canonical_pose, colour_agreement
 from workers.pipeline.pose.crop import PoseInputs, SceneCloud, check_inputs, crop_scene
-from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
+from workers.pipeline.pose.options import FINAL_FITS, POSE_PRESETS, PoseOptions
 from workers.pipeline.pose.refine import Refined, Refinement, Refiner
 from workers.pipeline.pose.result import Alternative, PoseResult, Trial
 from workers.pipeline.pose.verify import FitVerification, verify_fit
@@ -101,6 +101,10 @@ def estimate_pose(
     inputs = check_inputs(cluster_points_env, centre_env, previous_env_from_object, up_env)
     if options.max_rounds < 1 or options.n_seeds < 0:
         raise InputError("PoseOptions needs max_rounds ≥ 1 and n_seeds ≥ 0")
+    if options.final_fit not in FINAL_FITS:
+        raise InputError(
+            f"PoseOptions.final_fit must be one of {FINAL_FITS}, got {options.final_fit!r}"
+        )
     region = crop_scene(model, scene, inputs, options)
     timings = {
         "support_removed": float(region.support_removed),
@@ -136,5 +140,7 @@ def estimate_pose(
         trials=rounds.trials,
         n_scene_points=region.n_points,
         alternatives=tuple(Alternative(r.score, r.env_from_object) for r in rounds.alternatives),
+        rotation_slack_deg=fit.rotation_slack_deg,
+        final_turn_deg=fit.final_turn_deg,
         timings_s=timings,
     )

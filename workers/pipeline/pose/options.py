@@ -13,6 +13,9 @@ from typing import Any
 
 from workers.pipeline.option_values import with_overrides
 
+#: the kinds of the last fit (``PoseOptions.final_fit``)
+FINAL_FITS = ("scene_to_model", "icp")
+
 
 @dataclass(frozen=True)
 class PoseOptions:
@@ -46,6 +49,13 @@ class PoseOptions:
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
     # ICP iterations per scale of the refinement; raise if refinement has not converged
     icp_max_iterations: int = 20
+    # last fit of the winner: "scene_to_model" (robust, scan onto the model's tangent
+    # planes) or "icp" (point-to-plane ICP at the last ICP scale, model onto the scan)
+    final_fit: str = "scene_to_model"
+    # reach of the last fit, voxels (capped by max_inlier_distance_m); ≥ the scan's noise
+    final_reach_voxels: float = 1.0
+    # iterations of the last fit; it stops earlier once the pose is still
+    final_max_iterations: int = 30
     # inlier distance of ``fitness``, voxels (capped by ``max_inlier_distance_m``)
     inlier_voxels: float = 0.5
     # cap on every inlier distance, metres: the scan's noise, not the object's size
@@ -66,6 +76,12 @@ class PoseOptions:
     support_band_voxels: float = 0.5
     # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
     max_sink_m: float = 0.01
+    # largest rotation the scan's residual level may hide, degrees, for ``verified``
+    # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
+    max_rotation_slack_deg: float = 20.0
+    # largest turn of the last fit from the refinement's ICP pose, degrees, for ``verified``
+    # (final_turn_deg: the two fits disagree where the scan does not settle the rotation)
+    max_final_turn_deg: float = 3.0
     # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85
     # seed of RANSAC and the support-plane search; results are deterministic for a seed

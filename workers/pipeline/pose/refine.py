@@ -3,8 +3,11 @@
 The best ``n_refine`` distinct candidates not refined yet (across rounds) are refined by
 multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` → ``0.25v``,
 pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels``, where
-near-symmetric alternatives separate. The winner gets a last ICP on every model point and
-is lifted onto its support when it sank into it.
+near-symmetric alternatives separate. The winner gets a last fit of the scan onto every
+model point (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene to
+model) and is lifted onto its support when it sank into it; the rotation its residual
+level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) says how well the scan
+holds it.
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 from workers.pipeline.geometry import Mat4, Points, transform_points
 from workers.pipeline.model import make_cloud
+from workers.pipeline.model.symmetry_group import symmetric_pose_error
 from workers.pipeline.pose.candidates import (
     CandidatePool,
     FitContext,
@@ -23,9 +28,12 @@ from workers.pipeline.pose.candidates import (
     distinct_ranked,
 )
 from workers.pipeline.pose.fit import (
+    ModelSurface,
+    fit_scene_to_model,
     icp_point_to_plane,
     normalised,
     out_of_support,
+    rotation_slack_deg,
     truncated_score,
 )
 from workers.pipeline.pose.result import Trial
@@ -48,7 +56,9 @@ class Refinement:
     """The winner of one round: ``env_from_object`` after the last ICP and support lift,
     its fine ``score``, the ``runner_up`` (fine score of the best distinct other refined
     pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
-    ``inlier_distance_m`` of the scene, and the ``best`` trial it came from."""
+    ``inlier_distance_m`` of the scene, the ``best`` trial it came from and the
+    ``rotation_slack_deg`` its residual level hides, and ``final_turn_deg``, how far the
+    last fit turned the ICP's pose modulo symmetry (both 0 when not computed)."""
 
     env_from_object: Mat4
     score: float
@@ -57,6 +67,8 @@ class Refinement:
     inlier_rmse_m: float
     inlier_distance_m: float
     best: Trial
+    rotation_slack_deg: float = 0.0
+    final_turn_deg: float = 0.0
 
 
 @dataclass
@@ -68,6 +80,7 @@ class Refiner:
     model_full: o3d.geometry.PointCloud
     mid_points: Points
     mid_normals: Points
+    surface: ModelSurface
     refined: list[Refined] = field(default_factory=list)
     refined_ids: set[int] = field(default_factory=set)
 
@@ -82,6 +95,7 @@ class Refiner:
             model_full,
             np.asarray(model_mid.points),
             normalised(np.asarray(model_mid.normals)),
+            ModelSurface(m.points, m.normals),
         )
 
     def _refine(self, trial: Trial) -> Refined:
@@ -110,14 +124,35 @@ class Refiner:
             self.refined.append(self._refine(t))
         self.refined.sort(key=lambda r: -r.score)
         best = self.refined[0]
-        env_from_object = icp_point_to_plane(
-            m.points,
-            m.normals,
-            region.target_fine,
-            best.env_from_object,
-            o.icp_scales_voxels[-1] * v,
-            o.icp_max_iterations,
-        )
+        slack = turn = 0.0
+        if o.final_fit == "scene_to_model":
+            reach = min(o.final_reach_voxels * v, o.max_inlier_distance_m)
+            # the scan near the pose (within two reaches of the posed model) is all the
+            # fit can pair
+            near, _ = cKDTree(transform_points(best.env_from_object, m.points)).query(
+                region.target_fine.points, distance_upper_bound=2 * reach
+            )
+            scene = region.target_fine.points[np.isfinite(near)]
+            env_from_object, weights = fit_scene_to_model(
+                self.surface, scene, best.env_from_object, reach, o.final_max_iterations
+            )
+            free_axis = m.symmetry.axis if m.symmetry.kind == "continuous" else None
+            slack = rotation_slack_deg(self.surface, scene, weights, env_from_object, free_axis)
+            # two estimators with different weaknesses (model onto scan with the scan's
+            # normals; scan onto model, robust): where they disagree the scan does not
+            # settle the rotation
+            turn = symmetric_pose_error(
+                env_from_object, best.env_from_object, m.symmetry, m.centre_object
+            )[1]
+        else:
+            env_from_object = icp_point_to_plane(
+                m.points,
+                m.normals,
+                region.target_fine,
+                best.env_from_object,
+                o.icp_scales_voxels[-1] * v,
+                o.icp_max_iterations,
+            )
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
@@ -145,4 +180,6 @@ class Refiner:
             inlier_rmse_m=float(ev.inlier_rmse),
             inlier_distance_m=dist_in,
             best=best.trial,
+            rotation_slack_deg=slack,
+            final_turn_deg=turn,
         )

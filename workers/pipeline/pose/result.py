@@ -39,7 +39,10 @@ class PoseResult:
     ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
     "colour", "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
     ``alternatives``: the other refined hypotheses (:class:`Alternative`), best
-    first — for a caller whose re-projection check rejects the chosen pose."""
+    first — for a caller whose re-projection check rejects the chosen pose.
+    ``rotation_slack_deg``: the rotation the scan's residual level hides
+    (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`); ``final_turn_deg``: how far the
+    last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed)."""
 
     env_from_object: Mat4
     fitness: float
@@ -59,6 +62,8 @@ class PoseResult:
     trials: tuple[Trial, ...]
     n_scene_points: int
     alternatives: tuple[Alternative, ...] = ()
+    rotation_slack_deg: float = 0.0
+    final_turn_deg: float = 0.0
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:

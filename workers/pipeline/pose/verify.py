@@ -65,8 +65,10 @@ def verify_fit(
     ``max_rmse_voxels·v`` (at most 0.6 × ``max_inlier_distance_m``), a distinct pose scores
     above ``max_runner_up_ratio`` × the best (two poses that explain the data about equally
     well are not a verified pose), or the cluster coverage is below
-    ``min_cluster_coverage``. ``model_points``: (N, 3) object frame; ``cluster``: (K, 3)
-    environment frame or None."""
+    ``min_cluster_coverage``, or the scan's residual level hides a turn of more than
+    ``max_rotation_slack_deg`` or the last fit turned the refinement's ICP pose by more than
+    ``max_final_turn_deg`` (the scan does not settle its rotation). ``model_points``:
+    (N, 3) object frame; ``cluster``: (K, 3) environment frame or None."""
     coverage: float | None = None
     if cluster is not None:
         posed = transform_points(fit.env_from_object, model_points)
@@ -81,6 +83,16 @@ def verify_fit(
     if fit.runner_up > o.max_runner_up_ratio * fit.score:
         ratio = fit.runner_up / fit.score
         rejections.append(f"{RUNNER_UP_REASON} {ratio:.2f} of the best (> {o.max_runner_up_ratio})")
+    if fit.rotation_slack_deg > o.max_rotation_slack_deg:
+        rejections.append(
+            f"the scan's residuals hide a turn of {fit.rotation_slack_deg:.1f}° "
+            f"(> {o.max_rotation_slack_deg:.1f}°)"
+        )
+    if fit.final_turn_deg > o.max_final_turn_deg:
+        rejections.append(
+            f"the last fit turned the ICP pose by {fit.final_turn_deg:.1f}° "
+            f"(> {o.max_final_turn_deg:.1f}°)"
+        )
     if coverage is not None and coverage < o.min_cluster_coverage:
         rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")
     return FitVerification(coverage, tuple(rejections))

@@ -97,7 +97,7 @@ class CompareOptions:
 
     # thresholds
     # how each side's change threshold on C2C distances is chosen (see ThresholdSpec)
-    threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
+    threshold: ThresholdSpec = field(default_factory=lambda: ThresholdSpec(clip=6.0))
     # distance statistics over "overlap" (points the other capture looked at) or "all" points
     stats_region: StatsRegion = "overlap"
     # at most this many points (seeded sample) for the overlap test of the statistics
@@ -153,7 +153,7 @@ class CompareOptions:
     # a visible cluster counts as an occurrence in an image only where its box has at
     # least this area, pixels² (where the detector could fire); set near the detector's
     # smallest box
-    min_box_area_px: float = 0.0
+    min_box_area_px: float = 150.0
     # not seen is not changed
     # a removed candidate counts only where the after capture saw empty space
     check_seen_removed: bool = True
@@ -166,12 +166,12 @@ class CompareOptions:
     # a place is seen empty where the other capture's surface lies this far behind the
     # point, metres (plus seen_tolerance_px); lower to see flat objects go, raise for
     # noisy clouds
-    seen_tolerance_m: float = 0.02
+    seen_tolerance_m: float = 0.005
     # extra seen-check tolerance: the depth span of this many z-buffer pixels
-    seen_tolerance_px: float = 2.0
+    seen_tolerance_px: float = 1.0
     # long side of the seen checks' own z-buffers, pixels (None: zbuffer_max_side's);
     # finer ones see lower objects go, at more time
-    seen_zbuffer_max_side: int | None = None
+    seen_zbuffer_max_side: int | None = 512
     # reporting
     # smallest unidentified cluster reported as a change, points (~5 × 5 cm at 2.5 mm spacing)
     unidentified_min_points: int = 300
@@ -194,11 +194,11 @@ class CompareOptions:
     # a removed cluster the detector does not name takes the class of the twin instance it
     # lies on, and an added one standing where an identified object was removed its best
     # other class, when that class scores at least this metric (None: off)
-    twin_identify_threshold: float | None = None
+    twin_identify_threshold: float | None = 0.3
     # an identified cluster left as a plain addition or removal is no change when the
     # other capture's detector names its class at its place with at least this metric
     # (a hole in one reconstruction); None: off
-    still_there_metric: float | None = None
+    still_there_metric: float | None = 0.3
     # a removed cluster closes a twin instance within this × its class diameter
     instance_match_factor: float = 1.0
     # smallest reach of that match, metres (instance_match_factor × diameter if larger)
@@ -297,6 +297,9 @@ PRESETS: dict[str, CompareOptions] = {
         grow_threshold=None,
         merge_clusters=False,
         unidentified_min_points=1,
+        min_box_area_px=0.0,
+        twin_identify_threshold=None,
+        still_there_metric=None,
     ),
     # the level of detection instead of a distribution quantile
     "lod": CompareOptions(threshold=ThresholdSpec(kind="lod")),

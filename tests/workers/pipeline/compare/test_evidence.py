@@ -132,7 +132,9 @@ def test_a_flat_removal_is_seen_with_the_finer_seen_check() -> None:
     before = capture([slab, BASE[1]], CAMS, seed=1)
     after = capture([BASE[1]], CAMS, seed=2)
     twin = twin_of([slab, BASE[1]], ["slab-1", "bin-1"])
-    coarse = PRESETS["default"]
+    coarse = PRESETS["default"].replace(
+        seen_tolerance_m=0.02, seen_tolerance_px=2.0, seen_zbuffer_max_side=None
+    )
     fine = coarse.replace(seen_tolerance_m=0.003, seen_tolerance_px=1.0, seen_zbuffer_max_side=512)
     res_coarse = compare_snapshots(
         before, after, twin, CLASSES, DIAMETERS, coarse, new_id=Counter()

@@ -35,6 +35,8 @@ import { CHANGE_COLOURS, Viewer, type Layer, type Pick } from "./viewer";
 
 /** Points asked of the decimated cloud endpoint: what a browser draws smoothly. */
 export const DEFAULT_MAX_POINTS = 300_000;
+/** How often an environment page with no job running looks for new snapshots. */
+const IDLE_REFRESH_MS = 10_000;
 
 interface Focus {
   snapshot: Snapshot;
@@ -167,6 +169,8 @@ export class EnvironmentPage {
       getJson<TwinState>(`/v1/environments/${this.envId}/state`),
     ]);
     if (this.disposed) return;
+    const same = JSON.stringify([snapshots, comparisons, twin]) === JSON.stringify([this.snapshots, this.comparisons, this.twin]);
+    if (same) return; // nothing new: leave the page as it is (rows, selection, scroll)
     const hadFocus = this.focus?.snapshot.id;
     this.snapshots = snapshots;
     this.comparisons = comparisons;
@@ -231,8 +235,15 @@ export class EnvironmentPage {
     if (finished) await this.refresh().catch(() => undefined);
     else this.renderTimeline();
     if (this.pollTimer !== null) clearTimeout(this.pollTimer);
+    // jobs running: poll them; otherwise look for snapshots uploaded elsewhere now and then
     if (this.activeJobIds().length > 0) this.pollTimer = window.setTimeout(() => void this.pollJobs(), 1500);
-    else this.pollTimer = null;
+    else this.pollTimer = window.setTimeout(() => void this.idleRefresh(), IDLE_REFRESH_MS);
+  }
+
+  private async idleRefresh(): Promise<void> {
+    if (this.disposed) return;
+    await this.refresh().catch(() => undefined);
+    await this.pollJobs();
   }
 
   watchJob(job: Job): void {
@@ -555,14 +566,14 @@ export class EnvironmentPage {
     this.titleEl.replaceChildren(
       h("h1", {}, env.name),
       h("span", { class: `badge ${env.twin.status}` }, `twin ${env.twin.status}`),
-      h("span", { class: "muted" }, ` at ${this.seqOf(env.twin.snapshot)} · classes: ${env.classes.join(", ")}`),
+      h("span", { class: "muted" }, `${env.twin.snapshot ? ` at ${this.seqOf(env.twin.snapshot)}` : " (no snapshot yet)"} · classes: ${env.classes.join(", ")}`),
     );
   }
 
   private renderTwin(): void {
     const twin = this.twin;
     const el = this.twinEl;
-    el.replaceChildren(h("h2", {}, "Twin state", twin ? h("span", { class: "count" }, ` ${twin.objects.length}`) : null));
+    el.replaceChildren(h("h2", {}, "Twin state", twin ? h("span", { class: "muted count" }, ` (${twin.objects.length})`) : null));
     if (!twin) return void el.append(loading("the twin"));
     if (twin.objects.length === 0) return void el.append(empty("The twin has no objects yet."));
     const changes = this.focus?.comparison?.changes ?? [];

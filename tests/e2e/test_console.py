@@ -17,7 +17,7 @@ import httpx
 import numpy as np
 import pytest
 
-from app.client import check, embedded_service
+from app.client import check, embedded_service, poll_job
 from tests.e2e.console_fixtures import (
     CHROMIUM,
     CHROMIUM_ARGS,
@@ -51,15 +51,22 @@ class Shots:
 
 
 @pytest.fixture(scope="module")
-def service(
-    tmp_path_factory: pytest.TempPathFactory,
-) -> Iterator[tuple[httpx.Client, ProcessedScene]]:
+def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
+    """The embedded service serving the built console (admin client)."""
     dist = build_console()
     work = tmp_path_factory.mktemp("console")
     with embedded_service(
         work / "data", ADMIN_KEY, work / "service.log", console_dir=str(dist)
     ) as client:
-        yield client, process_small_scene(client, work)
+        yield client
+
+
+@pytest.fixture(scope="module")
+def service(
+    api: httpx.Client, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[httpx.Client, ProcessedScene]:
+    """The service once it has processed the small generated scene."""
+    return api, process_small_scene(api, tmp_path_factory.mktemp("scene"))
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +130,8 @@ def test_console_shows_the_twin_the_change_and_its_photos(
     shots.take(page, "01-signin")
     sign_in(page, base, ADMIN_KEY)
     page.get_by_test_id("env-list").wait_for()
-    rows = page.get_by_test_id("env-row")
+    rows = page.get_by_test_id("env-row").filter(has_text="cell")
     assert rows.count() == 1
-    assert "cell" in rows.first.inner_text()
     shots.take(page, "02-environments")
 
     rows.first.click()
@@ -242,10 +248,8 @@ def test_a_read_key_sees_but_cannot_upload(
     assert refused.status_code == 403, refused.text
 
 
-def test_a_wrong_key_is_unauthorised(
-    service: tuple[httpx.Client, ProcessedScene], browser: Any, tmp_path: Path
-) -> None:
-    client, _scene = service
+def test_a_wrong_key_is_unauthorised(api: httpx.Client, browser: Any, tmp_path: Path) -> None:
+    client = api
     base = str(client.base_url).rstrip("/")
     shots = Shots(tmp_path / "shots")
     page = new_page(browser)
@@ -258,3 +262,37 @@ def test_a_wrong_key_is_unauthorised(
     # a deep link without a key lands on the sign-in page
     page.goto(f"{base}/ui/#/environments/anything")
     page.get_by_test_id("signin-key").wait_for()
+
+
+def test_empty_and_failed_states(api: httpx.Client, browser: Any, tmp_path: Path) -> None:
+    """An environment without snapshots says so; a capture the reconstruction cannot use
+    shows its job's error code and detail in the timeline."""
+    from PIL import Image
+
+    shots = Shots(tmp_path / "shots")
+    base = str(api.base_url).rstrip("/")
+    env = check(api.post("/v1/environments", json={"name": "empty", "classes": ["box"]}), 201)
+    page = new_page(browser)
+    sign_in(page, base, ADMIN_KEY)
+    page.get_by_test_id("env-list").wait_for()
+    page.goto(f"{base}/ui/#/environments/{env['id']}")
+    page.get_by_text("No snapshots yet.").wait_for()
+    page.get_by_text("No reconstructed snapshot yet").wait_for()
+    assert page.get_by_text("The twin has no objects yet.").is_visible()
+    shots.take(page, "11-empty-environment")
+
+    rng = np.random.default_rng(0)
+    files = []
+    for i in range(3):  # noise: nothing for structure from motion to match
+        png = io.BytesIO()
+        Image.fromarray(rng.integers(0, 255, (240, 320, 3), dtype=np.uint8)).save(png, "PNG")
+        files.append(("images", (f"noise_{i}.png", png.getvalue(), "image/png")))
+    accepted = check(api.post(f"/v1/environments/{env['id']}/snapshots", files=files), 202)
+    job = poll_job(api, accepted["job"]["id"], "noise", 300, quiet=True)
+    assert job["state"] == "failed", job
+    banner = page.get_by_test_id("timeline").get_by_test_id("error-banner")
+    banner.wait_for(timeout=30_000)  # the page looks for new snapshots every 10 s
+    assert job["error"]["code"] in banner.inner_text()
+    assert (job["error"]["detail"] or "")[:40] in banner.inner_text()
+    shots.take(page, "12-failed-job")
+    assert page.errors == []

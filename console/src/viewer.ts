@@ -313,13 +313,6 @@ export class Viewer {
     this.requestRender();
   }
 
-  /** The screen position (CSS px in the canvas) of a point in the environment frame. */
-  toScreen(p: THREE.Vector3): { x: number; y: number } {
-    const v = p.clone().project(this.camera);
-    const r = this.renderer.domElement.getBoundingClientRect();
-    return { x: ((v.x + 1) / 2) * r.width, y: ((1 - v.y) / 2) * r.height };
-  }
-
   private bindPicking(): void {
     const canvas = this.renderer.domElement;
     let down: { x: number; y: number } | null = null;

@@ -44,9 +44,15 @@ class StoredCluster:
     points_env: NDArray[np.floating]
 
 
+def comparison_folder(after_storage_prefix: str, comparison_id: str) -> str:
+    """The storage key of the folder holding a comparison's artifacts (one per comparison:
+    a re-run is a new comparison, a retry rewrites its own); deleting a comparison deletes it."""
+    return f"{after_storage_prefix}/comparisons/{comparison_id}"
+
+
 def clusters_key(after_storage_prefix: str, comparison_id: str) -> str:
     """The storage key of a comparison's cluster points."""
-    return f"{after_storage_prefix}/comparisons/{comparison_id}/clusters.npz"
+    return f"{comparison_folder(after_storage_prefix, comparison_id)}/clusters.npz"
 
 
 def subsample(

@@ -40,7 +40,7 @@ from typing import Any
 from sqlalchemy import delete, event, or_, select, update
 from sqlalchemy.orm import Session
 
-from app.core import ingest, twin
+from app.core import change_clusters, ingest, twin
 from app.core.enums import JobKind, JobState, SnapshotState
 from app.core.errors import Conflict, NotFound
 from app.core.models import (
@@ -167,7 +167,7 @@ def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -
             "reconstructed one of its environment: the next capture is compared with it",
             code="SnapshotInUse",
         )
-    _delete_snapshot_rows(session, [snap.id])
+    _delete_snapshot_rows(session, storage, [snap.id])
     session.expire(snap, ["images"])  # deleted in bulk above
     now = utcnow()
     snap.state = SnapshotState.deleted
@@ -182,8 +182,10 @@ def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -
     return snap
 
 
-def _delete_snapshot_rows(session: Session, snapshot_ids: Sequence[str]) -> None:
-    """Comparisons (with changes and jobs), jobs and image rows of the snapshots."""
+def _delete_snapshot_rows(
+    session: Session, storage: LocalStorage, snapshot_ids: Sequence[str]
+) -> None:
+    """Comparisons (with changes, jobs and files), jobs and image rows of the snapshots."""
     comparisons = session.execute(
         select(Comparison.id, Comparison.job_id).where(
             or_(Comparison.before_id.in_(snapshot_ids), Comparison.after_id.in_(snapshot_ids))
@@ -192,14 +194,27 @@ def _delete_snapshot_rows(session: Session, snapshot_ids: Sequence[str]) -> None
     comparison_ids = [c for c, _ in comparisons]
     job_ids = [j for _, j in comparisons]
     job_ids += session.scalars(select(Job.id).where(Job.snapshot_id.in_(snapshot_ids))).all()
-    _delete_comparisons(session, comparison_ids)
+    _delete_comparisons(session, storage, comparison_ids)
     _delete(session, delete(Job).where(Job.id.in_(job_ids)))
     _delete(session, delete(SnapshotImage).where(SnapshotImage.snapshot_id.in_(snapshot_ids)))
 
 
-def _delete_comparisons(session: Session, comparison_ids: Sequence[str]) -> None:
+def _delete_comparisons(
+    session: Session, storage: LocalStorage, comparison_ids: Sequence[str]
+) -> None:
+    """The comparisons' rows, changes and jobs; their files (the change clusters, beside the
+    after snapshot's, which may stay) go after the commit."""
     if not comparison_ids:
         return
+    folders = session.execute(
+        select(Comparison.id, Snapshot.storage_prefix)
+        .join(Snapshot, Snapshot.id == Comparison.after_id)
+        .where(Comparison.id.in_(comparison_ids))
+    ).all()
+    for comparison_id, after_prefix in folders:
+        delete_after_commit(
+            session, storage, change_clusters.comparison_folder(after_prefix, comparison_id)
+        )
     session.execute(
         update(InstancePose)
         .where(InstancePose.comparison_id.in_(comparison_ids))
@@ -256,8 +271,8 @@ def delete_environment(session: Session, storage: LocalStorage, environment_id: 
     comparison_ids = list(
         session.scalars(select(Comparison.id).where(Comparison.environment_id == env.id)).all()
     )
-    _delete_comparisons(session, comparison_ids)
-    _delete_snapshot_rows(session, snapshot_ids)
+    _delete_comparisons(session, storage, comparison_ids)
+    _delete_snapshot_rows(session, storage, snapshot_ids)
     _delete(session, delete(Job).where(Job.environment_id == env.id))
     _delete(session, delete(Snapshot).where(Snapshot.environment_id == env.id))
     events = select(Event.id).where(Event.environment_id == env.id)
@@ -405,7 +420,8 @@ def cleanup_files(
       files untouched for ``max_age_s``;
     - ``snapshots/<id>`` folders whose snapshot is deleted, and those with no row at all
       once older than ``max_age_s`` (an upload killed between storing and committing);
-      photos of snapshots whose photos retention already deleted;
+      photos of snapshots whose photos retention already deleted; a live snapshot's
+      ``comparisons/<id>`` folders whose comparison is gone;
     - ``objects/<id>`` folders with no row, once older than ``max_age_s``.
     Returns counts by kind.
     """
@@ -468,9 +484,24 @@ def _cleanup_snapshot_folders(
         elif row[0] == SnapshotState.deleted:
             shutil.rmtree(path, ignore_errors=True)
             counts["snapshots"] += 1
-        elif row[1] is not None and (path / "images").exists():
-            shutil.rmtree(path / "images", ignore_errors=True)
-            counts["snapshots"] += 1
+        else:
+            if row[1] is not None and (path / "images").exists():
+                shutil.rmtree(path / "images", ignore_errors=True)
+                counts["snapshots"] += 1
+            counts["snapshots"] += _cleanup_comparison_folders(session, path / "comparisons")
+
+
+def _cleanup_comparison_folders(session: Session, folder: Path) -> int:
+    """Remove the ``comparisons/<id>`` folders under ``folder`` whose comparison row is gone
+    (its files are written only while the row exists); returns how many."""
+    names = _children(folder)
+    if not names:
+        return 0
+    known = set(session.scalars(select(Comparison.id).where(Comparison.id.in_(names))).all())
+    for name in names:
+        if name not in known:
+            shutil.rmtree(folder / name, ignore_errors=True)
+    return len(names) - len(known)
 
 
 def _children(folder: Path) -> list[str]:

@@ -8,12 +8,13 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import retention
-from app.core.enums import JobState, SnapshotState
-from app.core.models import Job, Snapshot, utcnow
+from app.core import change_clusters, retention
+from app.core.enums import ComparisonState, JobState, SnapshotState
+from app.core.models import Comparison, Job, Snapshot, utcnow
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from tests.app.api.test_snapshots_upload import as_parts, capture
@@ -172,3 +173,64 @@ def test_snapshot_says_when_its_photos_were_deleted(
     assert body["images_deleted_at"] is not None and body["state"] == "reconstructed"
     assert "pointcloud" in body["links"]
     assert not (_files(snap_id) / "images").exists() and (_files(snap_id) / "labels").is_dir()
+
+
+def _compare(
+    client: TestClient,
+    keys: Keys,
+    factory: sessionmaker[Session],
+    env_id: str,
+    before: str,
+    after: str,
+    n_points: int,
+) -> str:
+    """A comparison through the API, done as the worker would: its job succeeded and its
+    clusters.npz (one cluster of ``n_points``) stored; returns its id."""
+    r = client.post(
+        f"/v1/environments/{env_id}/comparisons",
+        json={"before": before, "after": after},
+        headers=keys.headers(),
+    )
+    assert r.status_code == 202, r.text
+    comparison_id = str(r.json()["id"])
+    with factory.begin() as s:
+        comparison = s.get_one(Comparison, comparison_id)
+        s.get_one(Job, comparison.job_id).state = JobState.succeeded
+        comparison.state = ComparisonState.succeeded
+    points = np.zeros((n_points, 3), np.float32)
+    change_clusters.write(
+        LocalStorage(get_settings().resolved_storage_dir),
+        change_clusters.clusters_key(f"snapshots/{after}", comparison_id),
+        [change_clusters.StoredCluster(0, "added", None, n_points, points)],
+    )
+    return comparison_id
+
+
+def test_deleting_the_before_snapshot_deletes_its_comparisons_clusters(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session]
+) -> None:
+    """The comparisons' cluster points lie beside the after snapshot's files; deleting the
+    before snapshot deletes the comparisons and their files, the after snapshot keeps its
+    own. A re-run of the same pair is a comparison with a file of its own."""
+    env_id = _environment(client, keys)
+    ids = []
+    for _ in range(2):
+        upload = _upload(client, keys, env_id)
+        ids.append(upload["snapshot"]["id"])
+        _finish(session_factory, upload["job"]["id"], ids[-1], SnapshotState.reconstructed)
+    before, after = ids
+    first = _compare(client, keys, session_factory, env_id, before, after, 3)
+    rerun = _compare(client, keys, session_factory, env_id, before, after, 5)
+    for comparison_id, n_points in ((first, 3), (rerun, 5)):
+        r = client.get(f"/v1/comparisons/{comparison_id}/clusters", headers=keys.headers("read"))
+        assert r.status_code == 200, r.text
+        assert [c["n_points"] for c in r.json()["clusters"]] == [n_points]
+    comparisons_dir = _files(after) / "comparisons"
+    assert sorted(p.name for p in comparisons_dir.iterdir()) == sorted([first, rerun])
+
+    r = client.delete(f"/v1/snapshots/{before}", headers=keys.headers())
+    assert r.status_code == 204, r.text
+    assert list(comparisons_dir.iterdir()) == []
+    assert (_files(after) / "images").is_dir()
+    r = client.get(f"/v1/comparisons/{first}/clusters", headers=keys.headers("read"))
+    assert r.status_code == 404

@@ -10,11 +10,12 @@ from dataclasses import dataclass
 from datetime import timedelta
 from pathlib import Path
 
+import numpy as np
 import pytest
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import queue, retention, snapshots, webhooks
+from app.core import change_clusters, queue, retention, snapshots, webhooks
 from app.core.enums import ComparisonState, JobKind, JobState, SnapshotState
 from app.core.errors import Conflict, NotFound
 from app.core.models import (
@@ -505,3 +506,41 @@ def test_an_environments_own_policy_overrides_the_settings(
         assert [x.seq for x in snapshots.history(s, history.env)] == [3, 2]
     assert not storage.exists(f"snapshots/{history.snaps[1]}/images")
     assert storage.exists(f"snapshots/{history.other_snap}/images/a.jpg")
+
+
+def _store_clusters(storage: LocalStorage, after: str, comparison_id: str) -> str:
+    """A one-cluster clusters.npz for ``comparison_id`` beside ``after``; returns its key."""
+    key = change_clusters.clusters_key(f"snapshots/{after}", comparison_id)
+    points = np.zeros((4, 3), np.float32)
+    change_clusters.write(
+        storage, key, [change_clusters.StoredCluster(0, "added", None, 4, points)]
+    )
+    return key
+
+
+def test_policy_deletes_the_cluster_files_of_the_comparisons_it_deletes(
+    session_factory: sessionmaker[Session], storage: LocalStorage, history: History
+) -> None:
+    """Seq 1 goes: its comparison 1→2 goes with the clusters stored beside seq 2, which stays."""
+    first, second, third = history.snaps
+    gone = _store_clusters(storage, second, history.comparisons[0])
+    kept = _store_clusters(storage, third, history.comparisons[1])
+    with session_factory.begin() as s:
+        counts = retention.apply_policy(s, storage, retention.Policy(keep_last_snapshots=2))
+    assert counts["snapshots_deleted"] == 1
+    assert not storage.exists(f"snapshots/{first}")
+    assert not storage.exists(gone.rsplit("/", 1)[0])
+    assert storage.exists(f"snapshots/{second}/reconstruction/cloud.ply")
+    assert storage.exists(kept)
+
+
+def test_cleanup_removes_cluster_files_whose_comparison_is_gone(
+    session_factory: sessionmaker[Session], storage: LocalStorage, history: History
+) -> None:
+    """A clusters.npz left by a deletion that ran before comparisons took their files along."""
+    orphan = _store_clusters(storage, history.snaps[2], new_id())
+    kept = _store_clusters(storage, history.snaps[2], history.comparisons[1])
+    with session_factory.begin() as s:
+        counts = retention.cleanup_files(s, storage, max_age_s=3600)
+    assert not storage.exists(orphan.rsplit("/", 1)[0]) and storage.exists(kept)
+    assert counts["snapshots"] == 1

@@ -35,7 +35,7 @@ import httpx
 import numpy as np
 
 from app.client import check, embedded_service, poll_job
-from tests.e2e.console_fixtures import CHROMIUM, CHROMIUM_ARGS, build_console
+from bench.console_browser import CHROMIUM, build_console, chromium, wait_for_cloud
 
 ROOT = Path(__file__).resolve().parents[1]
 ADMIN_KEY = "td_console_bench_admin_key_0123456789"
@@ -114,35 +114,25 @@ def open_times(
     base: str, environment_id: str, runs: int, hash_query: str, timeout_s: float = 120
 ) -> list[dict[str, Any]]:
     """``runs`` fresh page loads of the environment; each: cloudReadyMs and the points drawn."""
-    from playwright.sync_api import sync_playwright
-
     out = []
-    with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        try:
-            for _ in range(runs):
-                context = browser.new_context(viewport={"width": 1280, "height": 800})
-                context.add_init_script(
-                    f"sessionStorage.setItem('twindelta.apiKey', {json.dumps(ADMIN_KEY)})"
-                )
-                page = context.new_page()
-                page.goto(f"{base}/ui/#/environments/{environment_id}{hash_query}")
-                page.wait_for_function(
-                    "window.__twindelta && window.__twindelta.cloudReadyMs !== null",
-                    timeout=timeout_s * 1000,
-                )
-                state = page.evaluate("window.__twindelta")
-                out.append(
-                    {
-                        "cloud_ready_ms": round(state["cloudReadyMs"], 1),
-                        "points_drawn": state["cloudPoints"],
-                        "points_total": state["cloudTotalPoints"],
-                        "source": state["cloudSource"],
-                    }
-                )
-                context.close()
-        finally:
-            browser.close()
+    with chromium() as browser:
+        for _ in range(runs):
+            context = browser.new_context(viewport={"width": 1280, "height": 800})
+            context.add_init_script(
+                f"sessionStorage.setItem('twindelta.apiKey', {json.dumps(ADMIN_KEY)})"
+            )
+            page = context.new_page()
+            page.goto(f"{base}/ui/#/environments/{environment_id}{hash_query}")
+            state = wait_for_cloud(page, timeout_s)
+            out.append(
+                {
+                    "cloud_ready_ms": round(state["cloudReadyMs"], 1),
+                    "points_drawn": state["cloudPoints"],
+                    "points_total": state["cloudTotalPoints"],
+                    "source": state["cloudSource"],
+                }
+            )
+            context.close()
     return out
 
 

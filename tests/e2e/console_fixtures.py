@@ -1,11 +1,10 @@
-"""Helpers for the console's browser tests and benchmark: a small generated scene processed by
-the real embedded service, the console built, Debian's Chromium driven by Playwright."""
+"""Helpers for the console's browser tests: a small generated scene processed by the real
+embedded service, API keys. Building the console and launching Chromium live in
+bench/console_browser.py (the benchmark uses them too)."""
 
 from __future__ import annotations
 
 import json
-import shutil
-import subprocess
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -15,39 +14,7 @@ import httpx
 from app.client import check, poll_job, upload_capture
 from workers.pipeline.synth import generate, preset
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
-CONSOLE_DIR = REPO_ROOT / "console"
-CONSOLE_DIST = CONSOLE_DIR / "dist"
-CHROMIUM = "/usr/bin/chromium"
-# Software WebGL in a headless browser (no GPU on the test machines).
-CHROMIUM_ARGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
 SHOTS_DIR = Path("/tmp/console-shots")
-
-
-def console_sources_newer_than_build() -> bool:
-    """Whether console/dist is missing or older than any source, config or the lock file."""
-    index = CONSOLE_DIST / "index.html"
-    if not index.exists():
-        return True
-    built = index.stat().st_mtime
-    sources = [CONSOLE_DIR / "package-lock.json", CONSOLE_DIR / "index.html"]
-    sources += [p for p in (CONSOLE_DIR / "src").rglob("*") if p.is_file()]
-    sources += list(CONSOLE_DIR.glob("*.config.*")) + list(CONSOLE_DIR.glob("tsconfig*.json"))
-    return any(p.stat().st_mtime > built for p in sources if p.exists())
-
-
-def build_console() -> Path:
-    """Build console/dist with npm (``npm ci`` when node_modules is missing) unless it is
-    up to date; returns the dist folder. Raises RuntimeError naming what is missing."""
-    if not console_sources_newer_than_build():
-        return CONSOLE_DIST
-    npm = shutil.which("npm")
-    if npm is None:
-        raise RuntimeError("npm is not installed: the console needs Node.js 20+ and npm")
-    if not (CONSOLE_DIR / "node_modules").exists():
-        subprocess.run([npm, "ci", "--no-audit", "--no-fund"], cwd=CONSOLE_DIR, check=True)
-    subprocess.run([npm, "run", "build"], cwd=CONSOLE_DIR, check=True)
-    return CONSOLE_DIST
 
 
 @dataclass(frozen=True)

@@ -18,19 +18,12 @@ import numpy as np
 import pytest
 
 from app.client import check, embedded_service, poll_job
-from tests.e2e.console_fixtures import (
-    CHROMIUM,
-    CHROMIUM_ARGS,
-    SHOTS_DIR,
-    ProcessedScene,
-    build_console,
-    create_key,
-    process_small_scene,
-)
+from bench.console_browser import build_console, chromium, wait_for_cloud
+from tests.e2e.console_fixtures import SHOTS_DIR, ProcessedScene, create_key, process_small_scene
 
 # the first test also processes the scene (two reconstructions and a comparison, 2-4 min)
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(900)]
-playwright_api = pytest.importorskip("playwright.sync_api")
+pytest.importorskip("playwright.sync_api")
 ADMIN_KEY = "td_console_e2e_admin_key_0123456789"
 CLEAR_RGB = np.array([0x14, 0x17, 0x1C])  # the viewer's clear colour (console/src/viewer.ts)
 
@@ -71,12 +64,11 @@ def service(
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Any]:
-    if not Path(CHROMIUM).exists():
-        pytest.fail(f"{CHROMIUM} is missing: install Debian's chromium (make test-tools)")
-    with playwright_api.sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, headless=True, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
+    try:
+        with chromium() as b:
+            yield b
+    except RuntimeError as missing:
+        pytest.fail(str(missing))
 
 
 def new_page(browser: Any, width: int = 1280, height: int = 800) -> Any:
@@ -135,7 +127,7 @@ def test_console_shows_the_twin_the_change_and_its_photos(
     shots.take(page, "02-environments")
 
     rows.first.click()
-    page.wait_for_function("window.__twindelta.cloudReadyMs !== null", timeout=60_000)
+    wait_for_cloud(page)
     page.wait_for_function("window.__twindelta.modelsDrawn >= 1", timeout=30_000)
     page.get_by_test_id("twin-row").first.wait_for()
     page.wait_for_timeout(500)
@@ -191,7 +183,7 @@ def test_console_shows_the_twin_the_change_and_its_photos(
     sign_in(tablet, base, ADMIN_KEY)
     tablet.get_by_test_id("env-list").wait_for()
     tablet.goto(f"{base}/ui/#/environments/{scene.environment_id}")
-    tablet.wait_for_function("window.__twindelta.cloudReadyMs !== null", timeout=60_000)
+    wait_for_cloud(tablet)
     tablet.locator(f'[data-testid="twin-row"][data-object="{moved_object}"]').click()
     tablet.get_by_test_id("change-panel").wait_for()
     tablet.wait_for_timeout(500)

@@ -49,8 +49,9 @@ class PoseOptions:
     icp_scales_voxels: tuple[float, ...] = (1.5, 0.6, 0.25)
     # ICP iterations per scale of the refinement; raise if refinement has not converged
     icp_max_iterations: int = 20
-    # last fit of the winner: "scene_to_model" (robust, scan onto the model's tangent
-    # planes) or "icp" (point-to-plane ICP at the last ICP scale, model onto the scan)
+    # last fit of the winner: "icp" (point-to-plane ICP at the last ICP scale, model onto
+    # the scan) or "scene_to_model" (that ICP, then the scan fitted robustly onto the
+    # model's tangent planes, kept unless it turned the ICP's pose by max_final_turn_deg)
     final_fit: str = "scene_to_model"
     # reach of the last fit, voxels (capped by max_inlier_distance_m); ≥ the scan's noise
     final_reach_voxels: float = 1.0
@@ -79,8 +80,8 @@ class PoseOptions:
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
     max_rotation_slack_deg: float = 20.0
-    # largest turn of the last fit from the refinement's ICP pose, degrees, for ``verified``
-    # (final_turn_deg: the two fits disagree where the scan does not settle the rotation)
+    # largest turn of the scan-to-model fit from the ICP's pose, degrees, for ``verified``
+    # and to keep that fit (final_turn_deg: the fits disagree where the scan is deformed)
     max_final_turn_deg: float = 3.0
     # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85

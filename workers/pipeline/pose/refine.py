@@ -3,11 +3,12 @@
 The best ``n_refine`` distinct candidates not refined yet (across rounds) are refined by
 multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` → ``0.25v``,
 pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels``, where
-near-symmetric alternatives separate. The winner gets a last fit of the scan onto every
-model point (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene to
-model) and is lifted onto its support when it sank into it; the rotation its residual
-level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) says how well the scan
-holds it.
+near-symmetric alternatives separate. The winner gets a last ICP on every model point and
+then a fit of the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`,
+robust, scene to model), kept unless it turned the ICP's pose by more than
+``max_final_turn_deg``, and is lifted onto its support when it sank into it; that turn
+and the rotation the residual level hides
+(:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) say how well the scan holds it.
 """
 
 from __future__ import annotations
@@ -58,7 +59,7 @@ class Refinement:
     pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
     ``inlier_distance_m`` of the scene, the ``best`` trial it came from and the
     ``rotation_slack_deg`` its residual level hides, and ``final_turn_deg``, how far the
-    last fit turned the ICP's pose modulo symmetry (both 0 when not computed)."""
+    scan-to-model fit turned the ICP's pose modulo symmetry (both 0 when not computed)."""
 
     env_from_object: Mat4
     score: float
@@ -125,34 +126,35 @@ class Refiner:
         self.refined.sort(key=lambda r: -r.score)
         best = self.refined[0]
         slack = turn = 0.0
+        icp_pose = icp_point_to_plane(
+            m.points,
+            m.normals,
+            region.target_fine,
+            best.env_from_object,
+            o.icp_scales_voxels[-1] * v,
+            o.icp_max_iterations,
+        )
+        env_from_object = icp_pose
         if o.final_fit == "scene_to_model":
             reach = min(o.final_reach_voxels * v, o.max_inlier_distance_m)
             # the scan near the pose (within two reaches of the posed model) is all the
             # fit can pair
-            near, _ = cKDTree(transform_points(best.env_from_object, m.points)).query(
+            near, _ = cKDTree(transform_points(icp_pose, m.points)).query(
                 region.target_fine.points, distance_upper_bound=2 * reach
             )
             scene = region.target_fine.points[np.isfinite(near)]
-            env_from_object, weights = fit_scene_to_model(
-                self.surface, scene, best.env_from_object, reach, o.final_max_iterations
+            fitted, weights = fit_scene_to_model(
+                self.surface, scene, icp_pose, reach, o.final_max_iterations
             )
             free_axis = m.symmetry.axis if m.symmetry.kind == "continuous" else None
-            slack = rotation_slack_deg(self.surface, scene, weights, env_from_object, free_axis)
+            slack = rotation_slack_deg(self.surface, scene, weights, fitted, free_axis)
             # two estimators with different weaknesses (model onto scan with the scan's
-            # normals; scan onto model, robust): where they disagree the scan does not
-            # settle the rotation
-            turn = symmetric_pose_error(
-                env_from_object, best.env_from_object, m.symmetry, m.centre_object
-            )[1]
-        else:
-            env_from_object = icp_point_to_plane(
-                m.points,
-                m.normals,
-                region.target_fine,
-                best.env_from_object,
-                o.icp_scales_voxels[-1] * v,
-                o.icp_max_iterations,
-            )
+            # normals; scan onto model, robust): where they disagree by more than
+            # max_final_turn_deg the scan does not settle the rotation, the pose is not
+            # verified and the ICP's is kept (the closer of the two on the tuning set)
+            turn = symmetric_pose_error(fitted, icp_pose, m.symmetry, m.centre_object)[1]
+            if turn <= o.max_final_turn_deg:
+                env_from_object = fitted
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )

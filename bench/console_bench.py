@@ -35,6 +35,7 @@ import httpx
 import numpy as np
 
 from app.client import check, embedded_service, poll_job
+from app.core.export import decimate
 from bench.console_browser import CHROMIUM, build_console, chromium, wait_for_cloud
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -71,22 +72,12 @@ def room_cloud(n_points: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
 
 
 def write_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
-    """Binary little-endian PLY: float x, y, z and uchar red, green, blue."""
-    vertex = np.empty(
-        len(xyz),
-        dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")],
-    )
+    """Binary little-endian PLY: float x, y, z and uchar red, green, blue (the layout of the
+    API's decimated clouds)."""
+    vertex = np.empty(len(xyz), dtype=decimate.RECORD)
     vertex["x"], vertex["y"], vertex["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
     vertex["r"], vertex["g"], vertex["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(xyz)}\n"
-        "property float x\nproperty float y\nproperty float z\n"
-        "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n"
-    )
-    with path.open("wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vertex.tobytes())
+    path.write_bytes(decimate.ply_header(len(xyz)) + vertex.tobytes())
 
 
 def scan_snapshot(client: httpx.Client, ply: Path) -> tuple[str, str, dict[str, Any]]:

@@ -80,10 +80,13 @@ def new_page(browser: Any, width: int = 1280, height: int = 800) -> Any:
     return page
 
 
-def sign_in(page: Any, base: str, key: str) -> None:
+def sign_in(page: Any, base: str, key: str, listed: bool = True) -> None:
+    """Sign in with ``key``; with ``listed``, wait for the environments' list."""
     page.goto(f"{base}/ui/")
     page.get_by_test_id("signin-key").fill(key)
     page.get_by_test_id("signin-submit").click()
+    if listed:
+        page.get_by_test_id("env-list").wait_for()
 
 
 def busy_tiles(png: bytes, grid: int = 3, min_fraction: float = 0.05) -> list[float]:
@@ -121,7 +124,6 @@ def test_console_shows_the_twin_the_change_and_its_photos(
     page.get_by_test_id("signin-key").wait_for()
     shots.take(page, "01-signin")
     sign_in(page, base, ADMIN_KEY)
-    page.get_by_test_id("env-list").wait_for()
     rows = page.get_by_test_id("env-row").filter(has_text="cell")
     assert rows.count() == 1
     shots.take(page, "02-environments")
@@ -181,7 +183,6 @@ def test_console_shows_the_twin_the_change_and_its_photos(
 
     tablet = new_page(browser, 820, 1180)
     sign_in(tablet, base, ADMIN_KEY)
-    tablet.get_by_test_id("env-list").wait_for()
     tablet.goto(f"{base}/ui/#/environments/{scene.environment_id}")
     wait_for_cloud(tablet)
     tablet.locator(f'[data-testid="twin-row"][data-object="{moved_object}"]').click()
@@ -199,7 +200,6 @@ def test_upload_then_cancel_from_the_console(
     shots = Shots(tmp_path / "shots")
     page = new_page(browser)
     sign_in(page, base, ADMIN_KEY)
-    page.get_by_test_id("env-list").wait_for()
     page.goto(f"{base}/ui/#/environments/{scene.environment_id}")
     page.get_by_test_id("upload-drop").wait_for()
     capture = scene.scene_dir / "after"
@@ -245,7 +245,7 @@ def test_a_wrong_key_is_unauthorised(api: httpx.Client, browser: Any, tmp_path: 
     base = str(client.base_url).rstrip("/")
     shots = Shots(tmp_path / "shots")
     page = new_page(browser)
-    sign_in(page, base, "td_not_a_key_0123456789abcdef")
+    sign_in(page, base, "td_not_a_key_0123456789abcdef", listed=False)
     banner = page.get_by_test_id("error-banner")
     banner.wait_for()
     assert "Unauthorised" in banner.inner_text()
@@ -266,7 +266,6 @@ def test_empty_and_failed_states(api: httpx.Client, browser: Any, tmp_path: Path
     env = check(api.post("/v1/environments", json={"name": "empty", "classes": ["box"]}), 201)
     page = new_page(browser)
     sign_in(page, base, ADMIN_KEY)
-    page.get_by_test_id("env-list").wait_for()
     page.goto(f"{base}/ui/#/environments/{env['id']}")
     page.get_by_text("No snapshots yet.").wait_for()
     page.get_by_text("No reconstructed snapshot yet").wait_for()

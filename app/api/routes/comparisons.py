@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Response, status
+from sqlalchemy.orm import Session
 
 from app.api.deps import AdminKey, ReadKey, SessionDep, StorageDep
 from app.api.schemas.common import ERRORS, ErrorOut, conflict
@@ -13,17 +14,25 @@ from app.api.schemas.comparisons import (
     ComparisonRead,
 )
 from app.core import auth, change_views, comparisons, twin_records
+from app.core.models import Comparison
 
 router = APIRouter(prefix="/comparisons", tags=["comparisons"], responses=ERRORS)
+
+
+def _reachable(session: Session, comparison_id: str, key: auth.Principal) -> Comparison:
+    """The comparison; 404 when unknown or of an environment ``key`` does not reach (the
+    same answer for both)."""
+    comparison = comparisons.get(session, comparison_id)
+    auth.require_environment(
+        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
+    )
+    return comparison
 
 
 @router.get("/{comparison_id}")
 def get_comparison(comparison_id: str, session: SessionDep, key: ReadKey) -> ComparisonRead:
     """Distances, the cluster × class identification table, and the changes with poses."""
-    comparison = comparisons.get(session, comparison_id)
-    auth.require_environment(
-        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
-    )
+    comparison = _reachable(session, comparison_id, key)
     return ComparisonRead.of(
         comparison, twin_records.comparison_external_ids(session, [comparison])
     )
@@ -46,10 +55,7 @@ def retry_comparison(
 ) -> ComparisonRead:
     """Run a failed or cancelled comparison again; a failed automatic one holds its
     environment's twin (status blocked) until it succeeds."""
-    comparison = comparisons.get(session, comparison_id)
-    auth.require_environment(
-        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
-    )
+    _reachable(session, comparison_id, key)
     comparison = comparisons.retry(session, comparison_id)
     response.headers["Location"] = f"/v1/jobs/{comparison.job_id}"
     return ComparisonRead.of(comparison)
@@ -67,10 +73,7 @@ def get_clusters(
 ) -> ClustersRead:
     """The change clusters' points (environment frame, metres; at most 20 000 a cluster)
     with their side and change, for drawing."""
-    comparison = comparisons.get(session, comparison_id)
-    auth.require_environment(
-        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
-    )
+    comparison = _reachable(session, comparison_id, key)
     return ClustersRead(
         clusters=[
             ClusterPointsRead(
@@ -98,10 +101,7 @@ def get_change_views(
 ) -> list[ChangeViewRead]:
     """Every photo that saw the change's cluster: the cluster's re-projected outline and
     box, and the detection of the change's class that overlaps it best with its IoU."""
-    comparison = comparisons.get(session, comparison_id)
-    auth.require_environment(
-        key, comparison.environment_id, detail=f"comparison {comparison_id} not found"
-    )
+    comparison = _reachable(session, comparison_id, key)
     return [
         ChangeViewRead(
             image=v.image,

@@ -24,6 +24,7 @@ from app.core import auth, ingest, retention, snapshot_images, snapshots
 from app.core.db import get_read_session_factory
 from app.core.errors import Conflict, InvalidInput
 from app.core.export import decimate, laz, twin_scene
+from app.core.models import Snapshot
 
 router = APIRouter(tags=["snapshots"], responses=ERRORS)
 
@@ -137,6 +138,16 @@ def delete_snapshot(
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
+def _cloud_key(snap: Snapshot) -> str:
+    """The storage key of the snapshot's cloud; 409 PointCloudNotReady without one."""
+    if not snap.pointcloud_key:
+        raise Conflict(
+            f"snapshot {snap.id} has no point cloud (state {snap.state})",
+            code="PointCloudNotReady",
+        )
+    return snap.pointcloud_key
+
+
 @router.get(
     "/snapshots/{snapshot_id}/pointcloud",
     response_class=StreamingResponse,
@@ -183,14 +194,10 @@ def get_pointcloud(
     snap = snapshots.get(session, snapshot_id)
     auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
     if max_points is not None:
-        if not snap.pointcloud_key:
-            raise Conflict(
-                f"snapshot {snapshot_id} has no point cloud (state {snap.state})",
-                code="PointCloudNotReady",
-            )
+        cloud_key = _cloud_key(snap)
         if format == CloudFormat.laz:
             raise InvalidInput("max_points: a decimated cloud is PLY only; leave out format=laz")
-        cached = decimate.ensure_decimated(storage, snap.pointcloud_key, max_points)
+        cached = decimate.ensure_decimated(storage, cloud_key, max_points)
         return FileResponse(
             storage.path(cached.key),
             media_type=PLY_MEDIA_TYPE,
@@ -206,13 +213,9 @@ def get_pointcloud(
             negotiate.choose(request.headers.get("accept"), list(CLOUD_MEDIA_TYPES))
         ]
     )
-    if not snap.pointcloud_key:
-        raise Conflict(
-            f"snapshot {snapshot_id} has no point cloud (state {snap.state})",
-            code="PointCloudNotReady",
-        )
+    cloud_key = _cloud_key(snap)
     if chosen == CloudFormat.laz:
-        laz_key = laz.ensure_laz(storage, snap.pointcloud_key, twin_scene.generator())
+        laz_key = laz.ensure_laz(storage, cloud_key, twin_scene.generator())
         return StreamingResponse(
             storage.iter_bytes(laz_key),
             media_type=LAZ_MEDIA_TYPE,
@@ -222,7 +225,7 @@ def get_pointcloud(
             },
         )
     return StreamingResponse(
-        storage.iter_bytes(snap.pointcloud_key),
+        storage.iter_bytes(cloud_key),
         media_type=PLY_MEDIA_TYPE,
         headers={
             "Content-Disposition": f'attachment; filename="{snapshot_id}.ply"',

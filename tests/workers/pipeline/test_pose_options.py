@@ -64,7 +64,13 @@ def test_the_comparison_job_passes_the_posted_pose_options_to_the_pose_step(
         "pose": {"preset": "fast", "n_seeds": 4},
     }
     inputs = SimpleNamespace(
-        options=posted, before=None, after=None, twin=[], classes=["box"], models={}
+        options=posted,
+        before=None,
+        after=None,
+        twin=[],
+        classes=["box"],
+        models={},
+        clusters_key="snapshots/s/comparisons/c/clusters.npz",
     )
     seen: dict[str, Any] = {}
 
@@ -80,6 +86,10 @@ def test_the_comparison_job_passes_the_posted_pose_options_to_the_pose_step(
     monkeypatch.setattr(comparison_glue, "_capture_data", lambda ctx, files: None)
     monkeypatch.setattr(comparison_glue, "compare_snapshots", fake_compare)
     monkeypatch.setattr(comparison_glue, "pose_changes", fake_pose_changes)
+    monkeypatch.setattr(
+        comparison_glue, "_store_clusters", lambda ctx, key, result: seen.setdefault("key", key)
+    )
     comparison_glue._compute(SimpleNamespace(progress=lambda stage, fraction: None))  # type: ignore[arg-type]
     assert seen["pose_options"] == {"preset": "fast", "n_seeds": 4}
     assert seen["compare_options"] == options_from_json("thesis", {"cluster_min_points": 40})
+    assert seen["key"] == inputs.clusters_key

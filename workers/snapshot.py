@@ -68,8 +68,8 @@ class SnapshotInputs:
 
 @dataclass(frozen=True)
 class Inventory:
-    """The inventory stage's ``objects`` JSON and its summary (supports, stats, rejected
-    segments, or the error that stopped it)."""
+    """The inventory stage's ``objects`` JSON and its summary (the options it ran with,
+    supports, stats, rejected segments, or the error that stopped it)."""
 
     objects: list[dict[str, Any]]
     summary: dict[str, Any]
@@ -149,8 +149,11 @@ def _inventory(
     """Every library object the reconstruction shows (workers.pipeline.inventory; empty
     while no library object of the classes is ready to pose). A pipeline failure here
     leaves the reconstruction good: the summary carries the error and the inventory is
-    empty; bad options fail the job (InputError)."""
-    options = inventory_options_from_json(inputs.inventory_options)
+    empty; bad options fail the job (InputError). The summary keeps the options as the
+    environment gives them (``{"preset": name, **overrides}``), as a comparison keeps its."""
+    given = dict(inputs.inventory_options or {})
+    given = {"preset": str(given.pop("preset", "default")), **given}
+    options = inventory_options_from_json(given)
     models = inputs.models or {}
     points, colors = load_cloud(result.cloud_path)
     capture = CaptureData(
@@ -180,11 +183,11 @@ def _inventory(
     except Cancelled:
         raise
     except PipelineError as exc:
-        return Inventory([], {"error": {"code": exc.code, "detail": exc.detail}})
+        return Inventory([], {"options": given, "error": {"code": exc.code, "detail": exc.detail}})
     data = found.to_json()
     return Inventory(
         data["objects"],
-        {k: data[k] for k in ("supports", "stats", "rejected")},
+        {"options": given, **{k: data[k] for k in ("supports", "stats", "rejected")}},
     )
 
 

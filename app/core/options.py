@@ -18,7 +18,7 @@ from app.core.errors import InvalidInput
 from app.core.jsondoc import INT_LIMIT, show
 
 SCHEMA_PATH = Path(__file__).with_name("option_schema.json")
-STAGES = ("reconstruct", "compare")
+STAGES = ("reconstruct", "compare", "inventory")
 #: a stage's options may hold another's under its name: the comparison job poses what it
 #: found, so the compare options carry the pose options as ``"pose": {...}``
 NESTED_STAGES: dict[str, str] = {"compare": "pose"}
@@ -32,9 +32,9 @@ def schema() -> dict[str, Any]:
 
 
 def check_environment_options(options: Any) -> dict[str, Any]:
-    """An environment's ``options`` ({"reconstruct": {...}, "compare": {...}}, each optional,
-    each a preset name under "preset" and option overrides); InvalidInput naming the first
-    thing wrong."""
+    """An environment's ``options`` ({"reconstruct": {...}, "compare": {...}, "inventory":
+    {...}, "retention": {...}}, each optional; a stage's a preset name under "preset" and
+    option overrides); InvalidInput naming the first thing wrong."""
     if options is None:
         return {}
     if not isinstance(options, dict):
@@ -87,10 +87,15 @@ def check_retention_options(options: Any, where: str = "options.retention") -> d
     return dict(options)
 
 
-def check_stage_options(stage: str, options: Any, where: str = "options") -> dict[str, Any]:
-    """One stage's options (``stage`` "reconstruct", "compare" or "pose"; the compare options
-    may nest the pose options under ``"pose"``), as given; InvalidInput naming ``where`` and
-    the option for an unknown preset or option or a value of the wrong JSON type."""
+def check_stage_options(
+    stage: str, options: Any, where: str = "options", *, overrides_only: bool = False
+) -> dict[str, Any]:
+    """One stage's options (``stage`` "reconstruct", "compare", "pose" or "inventory"; the
+    compare options may nest the pose options under ``"pose"``, the inventory options hold
+    compare overrides under ``"compare"`` and pose options under ``"pose"``), as given;
+    ``overrides_only``: options of a preset named elsewhere, so no ``"preset"`` and no
+    nested stage. InvalidInput naming ``where`` and the option for an unknown preset or
+    option or a value of the wrong JSON type."""
     if options is None:
         return {}
     if not isinstance(options, dict):
@@ -101,10 +106,12 @@ def check_stage_options(stage: str, options: Any, where: str = "options") -> dic
             f"{where}.preset: unknown {stage} preset {show(options['preset'])}; "
             f"known: {', '.join(spec['presets'])}"
         )
-    nested = NESTED_STAGES.get(stage)
-    unknown = sorted(set(options) - set(spec["options"]) - {"preset", nested})
+    nested = None if overrides_only else NESTED_STAGES.get(stage)
+    own = set(spec["options"]) | ({"preset"} if not overrides_only else set())
+    unknown = sorted(set(options) - own - {nested})
     if unknown:
-        raise InvalidInput(f"{where}: unknown {stage} option(s) {', '.join(unknown)}")
+        hint = "; the preset is named beside them" if "preset" in unknown else ""
+        raise InvalidInput(f"{where}: unknown {stage} option(s) {', '.join(unknown)}{hint}")
     for name, value in options.items():
         if name == nested:
             check_stage_options(name, value, f"{where}.{name}")
@@ -128,6 +135,9 @@ def _check_value(where: str, value: Any, kind: dict[str, Any]) -> None:
     if value is None and kind.get("nullable"):
         return
     t = kind["type"]
+    if t == "options":
+        check_stage_options(kind["stage"], value, where, overrides_only=not kind["preset"])
+        return
     if t == "threshold":
         _check_threshold(where, value)
         return

@@ -4,9 +4,11 @@ tests: real PostgreSQL and the SQLite embedded default, a rollback per test."""
 from __future__ import annotations
 
 from tests.app.conftest import (  # noqa: F401  (fixtures)
+    client,
     data_dir,
     database_url,
     engine,
+    keys,
     sent_tasks,
     session,
     session_factory,

@@ -24,6 +24,7 @@ import textwrap
 import tokenize
 import types
 import typing
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,17 @@ OPTION_CLASSES: tuple[OptionClass, ...] = (
         "`python -m workers.pipeline pose --preset NAME`.",
     ),
     OptionClass(
+        "Inventory",
+        ("workers.pipeline.inventory.options",),
+        "InventoryOptions",
+        "INVENTORY_PRESETS",
+        'An environment\'s `options.inventory` (`{"preset": ..., <option>: <value>}`; '
+        "`compare` holds overrides of the compare preset `compare_preset`, `pose` the pose "
+        'options `{"preset": ..., <option>: <value>}`), used by every snapshot job of the '
+        "environment; or `python -m workers.pipeline inventory CAPTURE --preset NAME "
+        "--options JSON`.",
+    ),
+    OptionClass(
         "Model",
         ("workers.pipeline.model.options",),
         "ModelOptions",
@@ -129,6 +141,8 @@ def type_text(hint: Any) -> str:
     if origin is tuple:
         inner = type_text(args[0]) if args else "any"
         return f"list of {inner}"
+    if origin in (Mapping, dict):
+        return "object"
     if isinstance(hint, type):
         return hint.__name__
     return str(hint)
@@ -144,6 +158,8 @@ def value_text(value: Any) -> str:
         return f'"{value}"'
     if isinstance(value, tuple):
         return "[" + ", ".join(value_text(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{k}: {value_text(v)}" for k, v in value.items()) + "}"
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         to_json = getattr(value, "to_json", None)
         if callable(to_json):

@@ -1,4 +1,5 @@
-"""The names, presets and JSON types of the reconstruct, compare and pose options, for the API.
+"""The names, presets and JSON types of the reconstruct, compare, pose and inventory options,
+for the API.
 
 The API may not import the workers (docs/architecture.md), yet it should refuse an environment or
 comparison whose options a job would refuse, when they are posted rather than when the job
@@ -7,7 +8,9 @@ this description where ``app.core.options`` reads it; ``make lint`` fails when i
 
 Each option is ``{"type": T}`` with T one of bool, int, float, str, float_list, threshold
 (a ThresholdSpec in its JSON form, checked against ``"threshold"``), plus ``"nullable":
-true`` when it may be null and ``"choices"`` for a closed set of strings.
+true`` when it may be null and ``"choices"`` for a closed set of strings, or ``{"type":
+"options", "stage": S, "preset": P}`` for a field that holds stage S's options (P: whether
+they may name their own ``"preset"``; else they are overrides of a preset named elsewhere).
 """
 
 from __future__ import annotations
@@ -22,11 +25,19 @@ from typing import Any
 
 from workers.pipeline.compare.options import PRESETS as COMPARE_PRESETS
 from workers.pipeline.compare.options import CompareOptions, ThresholdSpec
+from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptions
 from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
 from workers.pipeline.reconstruct.options import PRESETS as RECONSTRUCT_PRESETS
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
 _SCALARS = {bool: "bool", int: "int", float: "float", str: "str"}
+#: fields whose type hint does not say what they hold: another stage's options, or a preset
+#: name of another stage. Add a row when an option class gains such a field.
+_SPECIAL: dict[tuple[type, str], dict[str, Any]] = {
+    (InventoryOptions, "compare_preset"): {"type": "str", "choices": sorted(COMPARE_PRESETS)},
+    (InventoryOptions, "compare"): {"type": "options", "stage": "compare", "preset": False},
+    (InventoryOptions, "pose"): {"type": "options", "stage": "pose", "preset": True},
+}
 
 
 def _option_type(hint: Any) -> dict[str, Any]:
@@ -49,12 +60,16 @@ def _option_type(hint: Any) -> dict[str, Any]:
 
 def _options(cls: type) -> dict[str, dict[str, Any]]:
     hints = typing.get_type_hints(cls)
-    return {f.name: _option_type(hints[f.name]) for f in dataclasses.fields(cls)}
+    return {
+        f.name: _SPECIAL.get((cls, f.name)) or _option_type(hints[f.name])
+        for f in dataclasses.fields(cls)
+    }
 
 
 def option_schema() -> dict[str, Any]:
     """{"reconstruct": {"presets", "options"}, "compare": {...}, "pose": {...},
-    "threshold": {...}}; the pose options are the ``pose`` key of the compare options."""
+    "inventory": {...}, "threshold": {...}}; the pose options are the ``pose`` key of the
+    compare options."""
     return {
         "reconstruct": {
             "presets": sorted(RECONSTRUCT_PRESETS),
@@ -62,6 +77,10 @@ def option_schema() -> dict[str, Any]:
         },
         "compare": {"presets": sorted(COMPARE_PRESETS), "options": _options(CompareOptions)},
         "pose": {"presets": sorted(POSE_PRESETS), "options": _options(PoseOptions)},
+        "inventory": {
+            "presets": sorted(INVENTORY_PRESETS),
+            "options": _options(InventoryOptions),
+        },
         "threshold": _options(ThresholdSpec),
     }
 

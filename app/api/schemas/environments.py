@@ -26,7 +26,8 @@ class EnvironmentCreate(BaseModel):
         default=None,
         description='{"reconstruct": {"preset": "default", ...}, "compare": {"threshold": '
         '{"kind": "mean_std", "k": 1.0}, ...}, "retention": {"images_after_days": 30, '
-        '"keep_last_snapshots": 10}}: presets and option overrides of the two stages, and '
+        '"keep_last_snapshots": 10}, "inventory": {"preset": "fast", "band_min_m": 0.006}}: '
+        "presets and option overrides of the reconstruct, compare and inventory stages, and "
         "this environment's retention policy over the server's (0: keep); an unknown preset "
         "or option or a value of the wrong type is a 422",
     )

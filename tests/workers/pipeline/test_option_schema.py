@@ -11,6 +11,7 @@ from app.core.options import check_stage_options, schema
 from workers.pipeline.compare.options import PRESETS as COMPARE_PRESETS
 from workers.pipeline.compare.options import options_from_json
 from workers.pipeline.errors import InputError
+from workers.pipeline.inventory.options import INVENTORY_PRESETS, inventory_options_from_json
 from workers.pipeline.option_schema import option_schema
 from workers.pipeline.reconstruct.options import PRESETS as RECONSTRUCT_PRESETS
 from workers.pipeline.reconstruct.options import options_from_preset
@@ -55,3 +56,23 @@ def test_what_the_api_refuses_the_stage_refuses_too(stage: str, options: dict[st
             options_from_preset("default", **options)
         else:
             options_from_json("default", options)
+
+
+def test_every_inventory_preset_written_out_in_full_passes_the_api_check() -> None:
+    """Each inventory preset as JSON (its compare overrides and pose options included)
+    passes the API's check and rebuilds the same options; what the stage refuses in its
+    nested options, the API refuses too."""
+    for name, iopts in INVENTORY_PRESETS.items():
+        full = iopts.to_json()
+        check_stage_options("inventory", {"preset": name, **full})
+        assert inventory_options_from_json(full) == iopts
+    for bad in (
+        {"compare": {"preset": "lod"}},
+        {"compare": {"threshold": {"kind": "mean_std", "sigma": 1.0}}},
+        {"pose": {"n_seed": 4}},
+        {"band_min_m": "4 mm"},
+    ):
+        with pytest.raises(InvalidInput):
+            check_stage_options("inventory", bad)
+        with pytest.raises(InputError):
+            inventory_options_from_json(bad).compare_options()

@@ -17,6 +17,7 @@ from tests.app.conftest import Keys, SentTasks
 from tests.app.core.test_twin_order import snapshot_job, upload
 from tests.workers import fake_pipeline
 from workers import snapshot as snapshot_glue
+from workers.pipeline.errors import PipelineError
 from workers.pipeline.inventory import InventoryOptions, inventory_options_from_json
 from workers.pipeline.pose.options import pose_options_from_json
 from workers.pipeline.reconstruct.options import ReconstructOptions, options_from_preset
@@ -103,3 +104,42 @@ def test_without_an_inventory_section_the_stage_runs_the_default_preset(
     assert seen["reconstruct"] == options_from_preset("default")
     assert seen["inventory"] == InventoryOptions()
     assert snap.inventory is not None and snap.inventory["options"] == {"preset": "default"}
+
+
+def test_the_snapshot_shows_its_inventory_summary(
+    client: TestClient,
+    keys: Keys,
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """GET /v1/snapshots/{id} carries the summary and links the objects; a stage that
+    failed shows its error, no objects link, and the objects route answers 409."""
+    inventory = {"preset": "fast"}
+    _, snap = run_snapshot(client, keys, session_factory, monkeypatch, {"inventory": inventory})
+    read = keys.headers("read")
+    got = client.get(f"/v1/snapshots/{snap.id}", headers=read).json()
+    assert got["inventory"] == snap.inventory
+    assert got["inventory"]["options"] == inventory and got["inventory"]["objects"] == 1
+    assert got["links"]["objects"] == f"/v1/snapshots/{snap.id}/objects"
+    objects = client.get(got["links"]["objects"], headers=read).json()
+    assert [o["object"] for o in objects] == ["drill"]
+
+    def failing(*args: Any) -> Any:
+        raise PipelineError("no support surface", code="NoSupports")
+
+    fake_pipeline.install(monkeypatch.setattr)
+    monkeypatch.setattr(snapshot_glue, "take_inventory", failing)
+    env_id = client.get(f"/v1/snapshots/{snap.id}", headers=read).json()["environment"]
+    snap_id = upload(client, keys, env_id, {"drill": 0.3}, tag="inventory-b")
+    assert snapshot_glue.run(snapshot_job(session_factory, snap_id)) == "succeeded"
+    got = client.get(f"/v1/snapshots/{snap_id}", headers=read).json()
+    assert got["inventory"] == {
+        "options": inventory,
+        "error": {"code": "NoSupports", "detail": "no support surface"},
+        "objects": 0,
+    }
+    assert "objects" not in got["links"]
+    r = client.get(f"/v1/snapshots/{snap_id}/objects", headers=read)
+    assert r.status_code == 409 and r.json()["error"] == "NotInventoried", r.text
+    assert "no support surface" in r.json()["detail"]

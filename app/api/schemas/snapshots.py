@@ -31,6 +31,15 @@ class SnapshotRead(Model):
     twin_update: TwinUpdate | None = None  # baseline | applied | skipped; None until its turn
     # when retention deleted the photos (the cloud, cameras and detections stay)
     images_deleted_at: datetime | None = None
+    inventory: dict[str, Any] | None = Field(
+        default=None,
+        description="the summary of the snapshot's inventory (its objects: GET "
+        "/v1/snapshots/{id}/objects): objects (count), options ({preset, ...} it ran with), "
+        "supports [{name, plane, height_m, noise_m, area_m2, n_points}], stats (counts, "
+        "timings_s), rejected (identified segments left out, each with its reason); or "
+        "objects 0 and error {code, detail} when the stage failed. Null: none taken (not "
+        "reconstructed yet, a laser scan, or reconstructed before inventories)",
+    )
     links: dict[str, str]
 
     @classmethod
@@ -38,6 +47,8 @@ class SnapshotRead(Model):
         links = {"self": f"/v1/snapshots/{snap.id}"}
         if snap.pointcloud_key:
             links["pointcloud"] = f"/v1/snapshots/{snap.id}/pointcloud"
+        if snap.inventory is not None and "error" not in snap.inventory:
+            links["objects"] = f"/v1/snapshots/{snap.id}/objects"
         if job:
             links["job"] = f"/v1/jobs/{job.id}"
         if comparison:
@@ -59,6 +70,7 @@ class SnapshotRead(Model):
             comparison=comparison.id if comparison else None,
             twin_update=TwinUpdate(snap.twin_update) if snap.twin_update else None,
             images_deleted_at=snap.images_deleted_at,
+            inventory=snap.inventory,
             links=links,
         )
 

@@ -14,7 +14,8 @@ When the twin reaches the snapshot (app.core.twin.advance):
   when the inventory's verified pose is further from the twin's than the pose estimate's
   noise (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a
   slow drift no single comparison flagged; a posed object no instance accounts for is
-  added (``inventoried``), as the first snapshot would have. An instance no object confirms keeps its state: not seen.
+  added (``inventoried``), as the first snapshot would have. An instance no object confirms
+keeps its state: not seen.
 
 Never commits.
 """

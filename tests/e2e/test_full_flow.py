@@ -1,7 +1,7 @@
 """A small generated scene through the whole embedded service over HTTP: object library,
 environment with its marker sheet, two captures reconstructed by structure from motion,
 the automatic comparison, the change with its pose against the ground truth, the twin's
-state and the instance's history."""
+state (filled by the first snapshot's inventory) and the instance's history."""
 
 from __future__ import annotations
 
@@ -87,12 +87,16 @@ def test_moved_object_found_with_its_pose(tmp_path: Path) -> None:
         assert {c["side"] for c in comparison["clusters"]} >= {"added"}
         assert comparison["distances"]["added"]["threshold"] > 0
 
-        # the twin: the first snapshot starts it empty; the move creates the instance
-        (instance,) = state["objects"]
-        assert instance["object"] == truth["changes"][0]["object"]
+        # the twin: the first snapshot's inventory fills it; the move moves that instance
+        # (or creates it, where the inventory did not find the object)
+        assert {o["object"] for o in state["objects"]} <= set(truth["classes"])
+        moved = truth["changes"][0]["object"]
+        (instance,) = [o for o in state["objects"] if o["object"] == moved]
         assert instance["pose"] == found["pose"]
         history = check(
             client.get(f"/v1/environments/{env['id']}/objects/{instance['instance_id']}/history"),
             200,
         )
-        assert [p["snapshot"] for p in history["poses"]] == [snapshots[1]["id"]]
+        records = [(p["snapshot"], p["change_type"]) for p in history["poses"]]
+        assert records[-1] == (snapshots[1]["id"], "moved"), records
+        assert records[:-1] in ([], [(snapshots[0]["id"], "inventoried")]), records

@@ -118,7 +118,7 @@ def test_seeded_instances_keep_their_platform_ids_through_the_twin_and_its_webho
     moved = {"instance_id": drill_id, "external_id": DRILL, "change_type": "moved"}
     removed = {"instance_id": bowl_id, "external_id": BOWL, "change_type": "removed"}
     assert [e.data.get("instances") for e in updated] == [
-        None,  # the baseline
+        [],  # the baseline lists the instances its inventory made: none (no inventory- marker)
         [{**moved, "present": True}],
         [{**removed, "present": False}, {**moved, "present": True}],  # in the order applied
     ]

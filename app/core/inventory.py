@@ -41,6 +41,7 @@ from app.core.models import (
     SnapshotObject,
     TwinInstance,
 )
+from app.core.twin_records import open_instances
 
 #: a verified inventory pose this far from the twin's (metres, degrees) is a real move, not
 #: the pose estimate's noise: the inventory's pose targets (every verified pose within
@@ -185,19 +186,6 @@ def _pairs(
     return out
 
 
-def _open(session: Session, environment_id: str) -> list[TwinInstance]:
-    return list(
-        session.scalars(
-            select(TwinInstance)
-            .where(
-                TwinInstance.environment_id == environment_id,
-                TwinInstance.closed_snapshot_id.is_(None),
-            )
-            .order_by(TwinInstance.created_at, TwinInstance.id)
-        )
-    )
-
-
 def _note(
     session: Session,
     instance: TwinInstance,
@@ -253,7 +241,7 @@ def fill_baseline(session: Session, env: Environment, head: Snapshot) -> list[Tw
     if not found:
         return []
     library = objects.by_names(session, sorted({o.object_name for o in found}))
-    seeded = _open(session, env.id)
+    seeded = open_instances(session, env.id)
     taken: list[TwinInstance] = []
     matched = _pairs(seeded, found, library)
     for instance, obj in matched:
@@ -308,7 +296,7 @@ def confirm(
     if not found:
         return out
     library = objects.by_names(session, sorted({o.object_name for o in found}))
-    instances = _open(session, env.id)
+    instances = open_instances(session, env.id)
     matched = _pairs(instances, found, library)
     for instance, obj in matched:
         obj.instance_id = instance.id

@@ -53,7 +53,7 @@ from app.core.models import (
     new_id,
     utcnow,
 )
-from app.core.twin_records import changed_instances, inventoried_instances
+from app.core.twin_records import changed_instances, inventoried_instances, open_instances
 
 log = logging.getLogger(__name__)
 
@@ -384,16 +384,7 @@ def _announce_blocked(
 
 def current(session: Session, environment_id: str) -> list[TwinInstance]:
     """Open instances (not removed), oldest first."""
-    return list(
-        session.scalars(
-            select(TwinInstance)
-            .where(
-                TwinInstance.environment_id == environment_id,
-                TwinInstance.closed_snapshot_id.is_(None),
-            )
-            .order_by(TwinInstance.created_at)
-        ).all()
-    )
+    return open_instances(session, environment_id)
 
 
 def history(

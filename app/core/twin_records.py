@@ -10,6 +10,20 @@ from sqlalchemy.orm import Session
 from app.core.models import Comparison, InstancePose, TwinInstance
 
 
+def open_instances(session: Session, environment_id: str) -> list[TwinInstance]:
+    """The environment's open instances (not removed), oldest first."""
+    return list(
+        session.scalars(
+            select(TwinInstance)
+            .where(
+                TwinInstance.environment_id == environment_id,
+                TwinInstance.closed_snapshot_id.is_(None),
+            )
+            .order_by(TwinInstance.created_at, TwinInstance.id)
+        )
+    )
+
+
 def changed_instances(
     session: Session, snapshot_id: str, comparison_id: str
 ) -> list[tuple[InstancePose, TwinInstance]]:

@@ -18,17 +18,14 @@ chunk by chunk (ASCII), so its size is limited by the disk, not by memory for th
 
 from __future__ import annotations
 
-import errno
-import fcntl
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.errors import Conflict, InsufficientStorage
+from app.core.errors import Conflict
+from app.core.export.derived import ensure_derived
 from app.core.export.ply import PlyError, colors_of, iter_vertices, read_header
 from app.core.storage import LocalStorage
 
@@ -110,33 +107,15 @@ def ensure_decimated(storage: LocalStorage, pointcloud_key: str, max_points: int
     total = total_points(storage, pointcloud_key)
     n = min(level(max_points), total)
     key = decimated_key(pointcloud_key, n)
-    source, target = storage.path(pointcloud_key), storage.path(key)
-    if _fresh(source, target):
-        return Decimated(key, n, total)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    part = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
-    try:
-        with source.open("rb") as lock:
-            # one writer per cloud at a time (flock on the PLY: processes of this host);
-            # whoever waited finds the file made. The rename alone keeps the file whole.
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            if not _fresh(source, target):
-                records = decimate(source, n)
-                with part.open("wb") as out:
-                    out.write(ply_header(len(records), f"twindelta: {n} of {total} points"))
-                    out.write(records.tobytes())
-                os.replace(part, target)
-    except PlyError as exc:
-        raise Conflict(str(exc), code="PointCloudUnreadable") from exc
-    except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise InsufficientStorage(
-                "the server's storage is full: the decimated cloud could not be written, "
-                "try again later"
-            ) from exc
-        raise
-    finally:
-        part.unlink(missing_ok=True)
+    source = storage.path(pointcloud_key)
+
+    def write(part: Path) -> None:
+        records = decimate(source, n)
+        with part.open("wb") as out:
+            out.write(ply_header(len(records), f"twindelta: {n} of {total} points"))
+            out.write(records.tobytes())
+
+    ensure_derived(source, storage.path(key), write, "the decimated cloud")
     return Decimated(key, n, total)
 
 
@@ -179,8 +158,3 @@ def _records(vertices: NDArray[np.void]) -> NDArray[np.void]:
     )
     out["r"], out["g"], out["b"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
     return out
-
-
-def _fresh(source: Path, target: Path) -> bool:
-    """Whether ``target`` exists and is at least as new as ``source``."""
-    return target.exists() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns

@@ -14,17 +14,13 @@ others wait for it.
 
 from __future__ import annotations
 
-import errno
-import fcntl
-import os
-import uuid
 from pathlib import Path, PurePosixPath
 
 import laspy
 import numpy as np
 from numpy.typing import NDArray
 
-from app.core.errors import Conflict, InsufficientStorage
+from app.core.export.derived import ensure_derived
 from app.core.export.ply import PlyError, colors_of, iter_vertices, positions_of
 from app.core.storage import LocalStorage
 
@@ -47,35 +43,11 @@ def ensure_laz(
     LAZ at least as new as the PLY is there. Conflict (409 ``PointCloudUnreadable``) when
     the PLY cannot be read or converted; InsufficientStorage (507) when the disk is full."""
     key = laz_key(pointcloud_key)
-    source, target = storage.path(pointcloud_key), storage.path(key)
-    if _fresh(source, target):
-        return key
-    part = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
-    try:
-        with source.open("rb") as lock:
-            # one conversion at a time per cloud (flock on the PLY: processes of this host);
-            # whoever waited finds the LAZ made. The rename alone keeps the file whole.
-            fcntl.flock(lock, fcntl.LOCK_EX)
-            if _fresh(source, target):
-                return key
-            write_laz(source, part, generator, chunk)
-            os.replace(part, target)
-    except PlyError as exc:
-        raise Conflict(str(exc), code="PointCloudUnreadable") from exc
-    except OSError as exc:
-        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            raise InsufficientStorage(
-                "the server's storage is full: the LAZ could not be written, try again later"
-            ) from exc
-        raise
-    finally:
-        part.unlink(missing_ok=True)
+    source = storage.path(pointcloud_key)
+    ensure_derived(
+        source, storage.path(key), lambda part: write_laz(source, part, generator, chunk), "the LAZ"
+    )
     return key
-
-
-def _fresh(source: Path, target: Path) -> bool:
-    """Whether ``target`` exists and is at least as new as ``source``."""
-    return target.exists() and target.stat().st_mtime_ns >= source.stat().st_mtime_ns
 
 
 def write_laz(ply: Path, out: Path, generator: str, chunk: int = CHUNK_POINTS) -> int:

@@ -96,9 +96,8 @@ class CompareOptions:
     """Every knob of the compare stage. Lengths in metres, image sizes in pixels."""
 
     # thresholds
-    # how each side's change threshold on C2C distances is chosen (see ThresholdSpec);
-    # clip 6 catches a small object beside a large change but reports surface noise as
-    # unidentified changes on the demo scene, so it is off by default
+    # how each side's change threshold on C2C distances is chosen (see ThresholdSpec); a
+    # clip lets a small change beside a large one through, but surface noise too
     threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
     # distance statistics over "overlap" (points the other capture looked at) or "all" points
     stats_region: StatsRegion = "overlap"

@@ -27,8 +27,17 @@ def test_compose_file_is_valid(tmp_path: Path) -> None:
 def test_compose_services_and_health_checks() -> None:
     spec = yaml.safe_load((REPO_ROOT / "docker-compose.yml").read_text())
     services = spec["services"]
-    assert {"postgres", "redis", "migrate", "api", "worker-cpu", "worker-webhooks"} <= set(services)
-    for name in ("postgres", "redis", "api", "worker-cpu", "worker-webhooks"):
+    assert {
+        "postgres",
+        "redis",
+        "minio",
+        "minio-bucket",
+        "migrate",
+        "api",
+        "worker-cpu",
+        "worker-webhooks",
+    } <= set(services)
+    for name in ("postgres", "redis", "minio", "api", "worker-cpu", "worker-webhooks"):
         assert "healthcheck" in services[name], name
     assert services["migrate"]["restart"] == "no"
     assert "-Q" in services["worker-cpu"]["command"] and "cpu" in services["worker-cpu"]["command"]
@@ -41,6 +50,8 @@ SECRET_VARS = (
     "REDIS_PASSWORD",
     "TWINDELTA_SECRET_KEY",
     "TWINDELTA_BOOTSTRAP_ADMIN_KEY",
+    "S3_ACCESS_KEY",
+    "S3_SECRET_KEY",
 )
 APP_SERVICES = ("migrate", "api", "worker-cpu", "worker-webhooks", "worker-maintenance")
 
@@ -76,13 +87,21 @@ GOOD = {
     "REDIS_PASSWORD": "rd-8f2a6b3c1d0e4f5a",
     "TWINDELTA_SECRET_KEY": "5e0f9c2a7b41d86e3f1a0c9b8d7e6f5a",
     "TWINDELTA_BOOTSTRAP_ADMIN_KEY": "",
+    "S3_ACCESS_KEY": "twindelta-s3",
+    "S3_SECRET_KEY": "s3-9a8b7c6d5e4f3a2b",
 }
 
 
 def test_compose_refuses_to_render_without_passwords(tmp_path: Path) -> None:
     """No default database or Redis password or secret key: compose stops and names the
     missing one."""
-    for missing in ("POSTGRES_PASSWORD", "REDIS_PASSWORD", "TWINDELTA_SECRET_KEY"):
+    for missing in (
+        "POSTGRES_PASSWORD",
+        "REDIS_PASSWORD",
+        "TWINDELTA_SECRET_KEY",
+        "S3_ACCESS_KEY",
+        "S3_SECRET_KEY",
+    ):
         env_file = tmp_path / f"no-{missing}.env"
         env_file.write_text("".join(f"{k}={v}\n" for k, v in GOOD.items() if k != missing))
         result = _compose(env_file, "-q")
@@ -142,6 +161,8 @@ def test_env_example_renders_and_names_every_secret(tmp_path: Path) -> None:
         example.replace("POSTGRES_PASSWORD=", "POSTGRES_PASSWORD=a1b2c3d4e5f6a7b8")
         .replace("REDIS_PASSWORD=", "REDIS_PASSWORD=c1d2e3f4a5b6c7d8")
         .replace("TWINDELTA_SECRET_KEY=", f"TWINDELTA_SECRET_KEY={GOOD['TWINDELTA_SECRET_KEY']}")
+        .replace("S3_ACCESS_KEY=", f"S3_ACCESS_KEY={GOOD['S3_ACCESS_KEY']}")
+        .replace("S3_SECRET_KEY=", f"S3_SECRET_KEY={GOOD['S3_SECRET_KEY']}")
     )
     result = _compose(filled, "-q")
     assert result.returncode == 0, result.stderr
@@ -164,3 +185,23 @@ def test_dockerfile_creates_data_owned_by_the_runtime_user() -> None:
     spec = yaml.safe_load((REPO_ROOT / "docker-compose.yml").read_text())
     for name in APP_SERVICES:
         assert spec["services"][name]["environment"]["TWINDELTA_DATA_DIR"] == "/data"
+
+
+def test_compose_app_containers_share_only_database_broker_and_bucket(tmp_path: Path) -> None:
+    """Files go to the bucket; each app container's /data is a private anonymous volume
+    (scratch), so no named volume is shared and workers can move to other hosts."""
+    services = _rendered(tmp_path, GOOD)["services"]
+    for name in APP_SERVICES:
+        service = services[name]
+        env = service["environment"]
+        assert env["TWINDELTA_STORAGE_URL"] == "s3://twindelta"
+        assert env["TWINDELTA_S3_ENDPOINT_URL"] == "http://minio:9000"
+        assert env["AWS_ACCESS_KEY_ID"] == GOOD["S3_ACCESS_KEY"]
+        assert env["AWS_SECRET_ACCESS_KEY"] == GOOD["S3_SECRET_KEY"]
+        for volume in service.get("volumes", []):
+            # compose v1 renders an anonymous volume as its bare container path
+            assert volume == "/data", (name, volume)
+    assert services["minio"]["environment"]["MINIO_ROOT_PASSWORD"] == GOOD["S3_SECRET_KEY"]
+    for name in ("api", "worker-cpu"):
+        depends = services[name]["depends_on"]
+        assert depends["minio-bucket"]["condition"] == "service_completed_successfully"

@@ -36,7 +36,7 @@ from app.core import auth, ingest
 from app.core.db import get_session_factory
 from app.core.errors import DomainError
 from app.core.settings import get_settings
-from app.core.storage import LocalStorage
+from app.core.storage import open_storage
 
 log = logging.getLogger("twindelta")
 
@@ -58,7 +58,7 @@ async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
             if auth.bootstrap_admin_key(session, settings.bootstrap_admin_key):
                 log.info("created the bootstrap admin key")
     # Staging folders of uploads whose API process died (killed mid-upload) go at once.
-    ingest.sweep_staging(LocalStorage(settings.resolved_storage_dir))
+    ingest.sweep_staging(open_storage(settings))
     yield
 
 

@@ -141,8 +141,8 @@ def _at(centroid: list[float] | None) -> list[list[float]]:
 
 
 def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
-    cloud = o3d.io.read_point_cloud(ctx.storage.path(files.cloud_key))
-    cameras = read_cameras_file(ctx.storage.path(files.cameras_key))
+    cloud = o3d.io.read_point_cloud(ctx.storage.local_file(files.cloud_key))
+    cameras = read_cameras_file(ctx.storage.local_file(files.cameras_key))
     return CaptureData(
         points_env=np.asarray(cloud.points, dtype=np.float64),
         cameras=cameras_from_file(cameras, files.cameras_key),
@@ -181,7 +181,7 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
             after,
             inputs.classes,
             inputs.models,
-            lambda name: load_prepared(ctx.storage.path(inputs.models[name][2])),
+            lambda name: load_prepared(ctx.storage.local_dir(inputs.models[name][2])),
             compare_options,
             pose_options,
             progress,

@@ -12,7 +12,7 @@ from app.core import retention as policy
 from app.core import uploads
 from app.core.db import transaction
 from app.core.settings import get_settings
-from app.core.storage import LocalStorage
+from app.core.storage import open_storage
 from workers.celery_app import app
 
 log = logging.getLogger(__name__)
@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 def retention() -> dict[str, int]:
     """Apply the retention policy, then remove stale work folders, staging and orphans."""
     settings = get_settings()
-    storage = LocalStorage(settings.resolved_storage_dir)
+    storage = open_storage(settings)
     with transaction() as session:
         counts = policy.apply_policy(session, storage, policy.Policy.from_settings(settings))
     with transaction() as session:
@@ -36,7 +36,7 @@ def retention() -> dict[str, int]:
 def expire_uploads() -> dict[str, int]:
     """Delete expired resumable uploads with their bytes, and partial files with no upload."""
     settings = get_settings()
-    storage = LocalStorage(settings.resolved_storage_dir)
+    storage = open_storage(settings)
     with transaction() as session:
         counts = uploads.expire(session, storage, settings.stale_files_after_s)
     if any(counts.values()):

@@ -36,7 +36,7 @@ def _compute(ctx: JobContext) -> PreparedModel:
     kind = requested.get("kind", "auto")
     symmetry = None if kind == "auto" else spec_from_json(requested)
     model = prepare_model(
-        ctx.storage.path(file_key),
+        ctx.storage.local_file(file_key),
         ctx.work_dir / "prepared",
         MODEL_PRESETS[ctx.job.preset if ctx.job.preset in MODEL_PRESETS else "default"],
         units=units,

@@ -38,7 +38,7 @@ from app.core.enums import JobState
 from app.core.errors import DomainError
 from app.core.models import Job
 from app.core.settings import Settings, get_settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage, open_storage
 from workers.pipeline.errors import Cancelled, PipelineError
 from workers.progress import ProgressReporter
 from workers.retry import FIRST_DELAY_S, MAX_DELAY_S, is_transient, retry_transient
@@ -56,7 +56,7 @@ class JobContext:
     attempt: int
     progress: ProgressReporter
     work_dir: Path
-    storage: LocalStorage
+    storage: Storage
     settings: Settings
 
 
@@ -86,8 +86,8 @@ def run_job(
     if attempt is None:
         return "skipped"
     job = retry_transient(lambda: _read(job_id), bound_s=bound, what=f"read of job {job_id}")
-    storage = LocalStorage(settings.resolved_storage_dir)
-    work_dir = storage.path(f".work/{job_id}")
+    storage = open_storage(settings)
+    work_dir = storage.scratch_path(f".work/{job_id}")
     work_dir.mkdir(parents=True, exist_ok=True)
     reporter = ProgressReporter(
         job_id, attempt, settings.progress_interval_s, settings.heartbeat_interval_s

@@ -31,7 +31,7 @@ def compute(
     sheet = parse_reference(reference) if record.frame.method == "markers" else None
     result = scan_to_cloud(
         ScanInput(
-            path=ctx.storage.path(record.file_key),
+            path=ctx.storage.local_file(record.file_key),
             format=record.format,
             frame=record.frame,
             points_declared=record.points_declared,

@@ -122,17 +122,21 @@ def _compute(ctx: JobContext) -> Outcome:
     with transaction() as session:
         ingest.record_images(session, inputs.snapshot_id, records)
     progress("ingest", 1.0)
-    cameras_path = ctx.storage.path(f"{inputs.prefix}/cameras.json")
+    cameras_key = f"{inputs.prefix}/cameras.json"
     options = dict(inputs.options)
     preset = str(options.pop("preset", ctx.job.preset or "default"))
     result = reconstruct(
-        images_dir=ctx.storage.path(f"{inputs.prefix}/images"),
+        images_dir=ctx.storage.local_dir(f"{inputs.prefix}/images"),
         work_dir=ctx.work_dir / "reconstruct",
         options=options_from_preset(preset, **options),
-        cameras=load_cameras(cameras_path) if cameras_path.exists() else None,
+        cameras=(
+            load_cameras(ctx.storage.local_file(cameras_key))
+            if ctx.storage.exists(cameras_key)
+            else None
+        ),
         reference=inputs.reference,
         reference_cloud=(
-            ctx.storage.path(inputs.previous_cloud_key) if inputs.previous_cloud_key else None
+            ctx.storage.local_file(inputs.previous_cloud_key) if inputs.previous_cloud_key else None
         ),
         progress=progress,
     )
@@ -176,7 +180,7 @@ def _inventory(
             capture,
             inputs.classes,
             {name: diameter for name, (diameter, _) in models.items()},
-            lambda name: load_prepared(ctx.storage.path(models[name][1])),
+            lambda name: load_prepared(ctx.storage.local_dir(models[name][1])),
             options,
             progress,
         )

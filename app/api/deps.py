@@ -17,7 +17,7 @@ from app.core.db import get_read_session_factory, get_session_factory
 from app.core.enums import Scope
 from app.core.errors import Unauthorized
 from app.core.settings import Settings, get_settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage, open_storage
 
 
 def get_session(request: Request) -> Iterator[Session]:
@@ -29,15 +29,15 @@ def get_session(request: Request) -> Iterator[Session]:
         yield session
 
 
-def get_storage(settings: Annotated[Settings, Depends(get_settings)]) -> LocalStorage:
-    return LocalStorage(settings.resolved_storage_dir)
+def get_storage(settings: Annotated[Settings, Depends(get_settings)]) -> Storage:
+    return open_storage(settings)
 
 
 # scope="function": the transaction commits before the response is sent, so a client that
 # got 201/202 can read what it created at once (and a failed commit is never answered 2xx).
 SessionDep = Annotated[Session, Depends(get_session, scope="function")]
 SettingsDep = Annotated[Settings, Depends(get_settings)]
-StorageDep = Annotated[LocalStorage, Depends(get_storage)]
+StorageDep = Annotated[Storage, Depends(get_storage)]
 
 
 def bearer(headers: Headers) -> str | None:

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.errors import Conflict
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 MAX_STORED_POINTS = 20_000
 SEED = 0
@@ -84,17 +84,18 @@ def to_npz(clusters: Sequence[StoredCluster]) -> bytes:
     return buf.getvalue()
 
 
-def write(storage: LocalStorage, key: str, clusters: Sequence[StoredCluster]) -> None:
+def write(storage: Storage, key: str, clusters: Sequence[StoredCluster]) -> None:
     """Store ``clusters`` under ``key`` (atomically)."""
     storage.write_bytes(key, to_npz(clusters))
 
 
-def read(storage: LocalStorage, key: str) -> list[StoredCluster] | None:
+def read(storage: Storage, key: str) -> list[StoredCluster] | None:
     """The clusters stored under ``key``; None when there is no file (a comparison made
     before the artifact existed, or not finished). Conflict (409 ClustersUnreadable) for a
     file that is not one."""
-    path = storage.path(key)
-    if not path.exists():
+    try:
+        path = storage.local_file(key)
+    except FileNotFoundError:
         return None
     try:
         with np.load(path, allow_pickle=False) as data:

@@ -32,7 +32,7 @@ from app.core.export import decimate
 from app.core.export.ply import PlyError, read_header
 from app.core.models import Change, Comparison, Environment, Snapshot
 from app.core.snapshot_images import PinholeCamera
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 FloatArray = NDArray[np.float64]
 # The compare stage's defaults (workers.pipeline.compare.options), used when a comparison's
@@ -61,7 +61,7 @@ class View:
 
 
 def stored_clusters(
-    session: Session, storage: LocalStorage, comparison: Comparison
+    session: Session, storage: Storage, comparison: Comparison
 ) -> list[StoredCluster]:
     """The comparison's cluster points. Conflict (409) ComparisonNotSucceeded before it
     succeeded; ClustersNotStored for one made before the service kept them (re-run it)."""
@@ -94,9 +94,7 @@ def change_of(session: Session, comparison: Comparison, change_id: str) -> Chang
     return change
 
 
-def views(
-    session: Session, storage: LocalStorage, comparison: Comparison, change_id: str
-) -> list[View]:
+def views(session: Session, storage: Storage, comparison: Comparison, change_id: str) -> list[View]:
     """Every photo of the change's cluster's capture that saw the cluster, by name (module
     docstring). 404 for an unknown change; 409 as :func:`stored_clusters`."""
     change = change_of(session, comparison, change_id)
@@ -178,12 +176,12 @@ def box_iou(a: Any, b: Any) -> float:
     return float(inter / union) if union > 0 else 0.0
 
 
-def _cloud_columns(storage: LocalStorage, snap: Snapshot, max_points: int) -> NDArray[np.float32]:
+def _cloud_columns(storage: Storage, snap: Snapshot, max_points: int) -> NDArray[np.float32]:
     """(3, N) float32 columns of the snapshot's cloud, decimated to ``max_points`` (the
     cached file of :mod:`app.core.export.decimate`)."""
     assert snap.pointcloud_key is not None
     cached = decimate.ensure_decimated(storage, snap.pointcloud_key, max_points)
-    path = storage.path(cached.key)
+    path = storage.local_file(cached.key)
     try:
         header, vertex = read_header(path)
     except PlyError as exc:

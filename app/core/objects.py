@@ -25,7 +25,7 @@ from app.core.errors import (
     PayloadTooLarge,
 )
 from app.core.models import Job, LibraryObject, new_id, utcnow
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 from app.formats.ply import ply_count_problem
 
 TASK = "object.prepare"
@@ -167,7 +167,7 @@ class ModelUpload:
 
 def create(
     session: Session,
-    storage: LocalStorage,
+    storage: Storage,
     upload: ModelUpload,
     *,
     max_bytes: int,

@@ -60,7 +60,7 @@ from app.core.models import (
     utcnow,
 )
 from app.core.settings import Settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage, check_key
 
 log = logging.getLogger(__name__)
 
@@ -75,9 +75,9 @@ MAX_DELETIONS_PER_RUN = 200
 # --- files, deleted after commit -------------------------------------------------------------
 
 
-def delete_after_commit(session: Session, storage: LocalStorage, key: str) -> None:
+def delete_after_commit(session: Session, storage: Storage, key: str) -> None:
     """Delete ``key`` (a file or folder) once ``session``'s transaction commits."""
-    storage.path(key)  # refuse a bad key now, inside the transaction
+    check_key(key)  # refuse a bad key now, inside the transaction
     session.info.setdefault(_PENDING, []).append((storage, key))
 
 
@@ -147,7 +147,7 @@ def protected(session: Session, environment_id: str) -> set[str]:
     }
 
 
-def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -> Snapshot:
+def delete_snapshot(session: Session, storage: Storage, snapshot_id: str) -> Snapshot:
     """Delete a snapshot's files, images, jobs and comparisons and leave its tombstone (see
     the module docstring); 404 when unknown or already deleted, 409 while a job uses it or
     when it is its environment's newest reconstructed snapshot."""
@@ -182,9 +182,7 @@ def delete_snapshot(session: Session, storage: LocalStorage, snapshot_id: str) -
     return snap
 
 
-def _delete_snapshot_rows(
-    session: Session, storage: LocalStorage, snapshot_ids: Sequence[str]
-) -> None:
+def _delete_snapshot_rows(session: Session, storage: Storage, snapshot_ids: Sequence[str]) -> None:
     """Comparisons (with changes, jobs and files), jobs and image rows of the snapshots."""
     comparisons = session.execute(
         select(Comparison.id, Comparison.job_id).where(
@@ -199,9 +197,7 @@ def _delete_snapshot_rows(
     _delete(session, delete(SnapshotImage).where(SnapshotImage.snapshot_id.in_(snapshot_ids)))
 
 
-def _delete_comparisons(
-    session: Session, storage: LocalStorage, comparison_ids: Sequence[str]
-) -> None:
+def _delete_comparisons(session: Session, storage: Storage, comparison_ids: Sequence[str]) -> None:
     """The comparisons' rows, changes and jobs; their files (the change clusters, beside the
     after snapshot's, which may stay) go after the commit."""
     if not comparison_ids:
@@ -234,7 +230,7 @@ def _delete(session: Session, statement: Any) -> None:
 # --- deleting an environment -----------------------------------------------------------------
 
 
-def delete_environment(session: Session, storage: LocalStorage, environment_id: str) -> None:
+def delete_environment(session: Session, storage: Storage, environment_id: str) -> None:
     """Delete an environment with every snapshot (and its files), comparison, job, twin
     record, event, delivery and environment-scoped webhook subscription; 404 when unknown,
     409 while any of its jobs is queued or running."""
@@ -326,7 +322,7 @@ class Policy:
 
 
 def apply_policy(
-    session: Session, storage: LocalStorage, policy: Policy, now: datetime | None = None
+    session: Session, storage: Storage, policy: Policy, now: datetime | None = None
 ) -> dict[str, int]:
     """One retention pass over every environment, each with ``policy`` and its own
     overrides; returns counts. Snapshots in use (see :func:`delete_snapshot`) are skipped
@@ -344,7 +340,7 @@ def apply_policy(
 
 
 def _keep_last(
-    session: Session, storage: LocalStorage, env: Environment, keep: int, counts: dict[str, int]
+    session: Session, storage: Storage, env: Environment, keep: int, counts: dict[str, int]
 ) -> None:
     """Beyond the ``keep`` newest snapshots of ``env``, delete those that are final and that
     the twin has already taken into account (``seq <= twin_seq``: a snapshot the chain has
@@ -374,7 +370,7 @@ def _keep_last(
 
 def _drop_images(
     session: Session,
-    storage: LocalStorage,
+    storage: Storage,
     environment_id: str,
     cutoff: datetime,
     now: datetime,
@@ -409,7 +405,7 @@ def _drop_images(
 
 
 def cleanup_files(
-    session: Session, storage: LocalStorage, max_age_s: float, now: float | None = None
+    session: Session, storage: Storage, max_age_s: float, now: float | None = None
 ) -> dict[str, int]:
     """Remove from storage:
 
@@ -427,7 +423,7 @@ def cleanup_files(
     """
     now = time.time() if now is None else now
     counts = {"work": 0, "staging": 0, "partial": 0, "snapshots": 0, "objects": 0}
-    work = storage.root / ".work"
+    work = storage.scratch_path(".work")
     names = _children(work)
     if names:
         states: dict[str, str] = {}
@@ -440,8 +436,8 @@ def cleanup_files(
                 counts["work"] += 1
     counts["staging"] = ingest.sweep_staging(storage)
     _cleanup_snapshot_folders(session, storage, max_age_s, now, counts)
-    objects_dir = storage.root / "objects"
-    names = _children(objects_dir)
+    newest = storage.folders("objects")
+    names = sorted(newest)
     if names:
         known = {
             object_id
@@ -451,21 +447,19 @@ def cleanup_files(
             )
         }
         for name in names:
-            if name not in known and _idle_s(objects_dir / name, now) > max_age_s:
-                shutil.rmtree(objects_dir / name, ignore_errors=True)
+            if name not in known and now - newest[name] > max_age_s:
+                storage.delete_prefix(f"objects/{name}")
                 counts["objects"] += 1
-    for part in objects_dir.glob("*/**/.*.part") if objects_dir.is_dir() else ():
-        if _idle_s(part, now) > max_age_s:  # write_stream's temporary file (models)
-            part.unlink(missing_ok=True)
-            counts["partial"] += 1
+    # write_stream's unfinished writes (models)
+    counts["partial"] = storage.remove_partial("objects", now - max_age_s)
     return counts
 
 
 def _cleanup_snapshot_folders(
-    session: Session, storage: LocalStorage, max_age_s: float, now: float, counts: dict[str, int]
+    session: Session, storage: Storage, max_age_s: float, now: float, counts: dict[str, int]
 ) -> None:
-    folder = storage.root / "snapshots"
-    names = _children(folder)
+    newest = storage.folders("snapshots")
+    names = sorted(newest)
     rows: dict[str, tuple[str, datetime | None]] = {}
     for chunk in _chunks(names, 500):
         for snapshot_id, state, images_deleted_at in session.execute(
@@ -475,32 +469,34 @@ def _cleanup_snapshot_folders(
         ):
             rows[snapshot_id] = (state, images_deleted_at)
     for name in names:
-        path = folder / name
+        prefix = f"snapshots/{name}"
         row = rows.get(name)
         if row is None:
-            if _idle_s(path, now) > max_age_s:
-                shutil.rmtree(path, ignore_errors=True)
+            if now - newest[name] > max_age_s:
+                storage.delete_prefix(prefix)
                 counts["snapshots"] += 1
         elif row[0] == SnapshotState.deleted:
-            shutil.rmtree(path, ignore_errors=True)
+            storage.delete_prefix(prefix)
             counts["snapshots"] += 1
         else:
-            if row[1] is not None and (path / "images").exists():
-                shutil.rmtree(path / "images", ignore_errors=True)
+            if row[1] is not None and storage.exists(f"{prefix}/images"):
+                storage.delete_prefix(f"{prefix}/images")
                 counts["snapshots"] += 1
-            counts["snapshots"] += _cleanup_comparison_folders(session, path / "comparisons")
+            counts["snapshots"] += _cleanup_comparison_folders(
+                session, storage, f"{prefix}/comparisons"
+            )
 
 
-def _cleanup_comparison_folders(session: Session, folder: Path) -> int:
+def _cleanup_comparison_folders(session: Session, storage: Storage, folder: str) -> int:
     """Remove the ``comparisons/<id>`` folders under ``folder`` whose comparison row is gone
     (its files are written only while the row exists); returns how many."""
-    names = _children(folder)
+    names = sorted(storage.folders(folder))
     if not names:
         return 0
     known = set(session.scalars(select(Comparison.id).where(Comparison.id.in_(names))).all())
     for name in names:
         if name not in known:
-            shutil.rmtree(folder / name, ignore_errors=True)
+            storage.delete_prefix(f"{folder}/{name}")
     return len(names) - len(known)
 
 
@@ -509,22 +505,6 @@ def _children(folder: Path) -> list[str]:
         return sorted(entry.name for entry in os.scandir(folder) if entry.is_dir())
     except FileNotFoundError:
         return []
-
-
-def _idle_s(path: Path, now: float) -> float:
-    """Seconds since anything in ``path`` (a file or a folder tree) last changed."""
-    try:
-        newest = path.stat().st_mtime
-        if path.is_dir():
-            for root, dirs, files in os.walk(path):
-                for name in (*dirs, *files):
-                    try:
-                        newest = max(newest, os.stat(os.path.join(root, name)).st_mtime)
-                    except FileNotFoundError:
-                        continue
-    except FileNotFoundError:
-        return 0.0
-    return now - newest
 
 
 def _chunks(items: Sequence[str], size: int) -> Iterable[Sequence[str]]:

@@ -38,7 +38,7 @@ from app.core.ingest.staging import _staging_dir, sweep_staging
 from app.core.ingest.upload import Ingested, _reading, insert_snapshot, replay_of
 from app.core.models import Environment
 from app.core.settings import Settings
-from app.core.storage import CHUNK_BYTES, LocalStorage
+from app.core.storage import CHUNK_BYTES, Storage
 from app.formats import FormatError
 from app.formats.ply import HEADER_MAX_BYTES, ply_body_problem, read_ply_header, vertex_element
 from app.formats.scan import (
@@ -69,9 +69,9 @@ class ScanRecord:
     size_bytes: int
 
 
-def load_record(storage: LocalStorage, prefix: str) -> ScanRecord:
+def load_record(storage: Storage, prefix: str) -> ScanRecord:
     """The ``scan.json`` of the scan snapshot stored under ``prefix``."""
-    doc = json.loads(storage.path(f"{prefix}/{RECORD_NAME}").read_text())
+    doc = json.loads(storage.local_file(f"{prefix}/{RECORD_NAME}").read_text())
     return ScanRecord(
         format=doc["format"],
         file_key=f"{prefix}/{doc['file']}",
@@ -211,7 +211,7 @@ def _frame(text: str | None, env: Environment) -> ScanFrame:
 
 def create_scan_snapshot(
     session: Session,
-    storage: LocalStorage,
+    storage: Storage,
     settings: Settings,
     environment_id: str,
     source: BinaryIO,

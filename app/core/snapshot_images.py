@@ -15,7 +15,7 @@ from sqlalchemy.orm import Session
 
 from app.core.errors import Conflict, Gone, NotFound
 from app.core.models import Snapshot, SnapshotImage
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 from app.formats import FormatError
 from app.formats.cameras import (
     CamerasFile,
@@ -63,13 +63,13 @@ class PhotoInfo:
     detections: list[Detection]
 
 
-def cameras_of(storage: LocalStorage, snap: Snapshot) -> dict[str, PinholeCamera]:
+def cameras_of(storage: Storage, snap: Snapshot) -> dict[str, PinholeCamera]:
     """The reconstruction's registered cameras by image name (none before it is
     reconstructed). Conflict (409 CamerasUnreadable) when its cameras.json cannot be read."""
     if not snap.cameras_key:
         return {}
     try:
-        doc: Any = json.loads(storage.path(snap.cameras_key).read_text(encoding="utf-8-sig"))
+        doc: Any = json.loads(storage.local_file(snap.cameras_key).read_text(encoding="utf-8-sig"))
         parsed: CamerasFile = (
             from_reconstruction_images(doc) if is_reconstruction_images(doc) else read_cameras(doc)
         )
@@ -123,7 +123,7 @@ def image_rows(session: Session, snapshot_id: str) -> list[SnapshotImage]:
     )
 
 
-def photos(session: Session, storage: LocalStorage, snap: Snapshot) -> list[PhotoInfo]:
+def photos(session: Session, storage: Storage, snap: Snapshot) -> list[PhotoInfo]:
     """Every photo of the snapshot by name, with its camera and detections."""
     cameras = cameras_of(storage, snap)
     return [
@@ -138,9 +138,7 @@ def photos(session: Session, storage: LocalStorage, snap: Snapshot) -> list[Phot
     ]
 
 
-def photo_file(
-    session: Session, storage: LocalStorage, snap: Snapshot, name: str
-) -> tuple[str, str]:
+def photo_file(session: Session, storage: Storage, snap: Snapshot, name: str) -> tuple[str, str]:
     """The storage key and media type of photo ``name``: 404 when the snapshot has no photo
     of that name, 410 ImagesDeleted when retention (or a deletion) removed the photos."""
     row = session.scalar(

@@ -2,14 +2,16 @@
 capture archive (.zip, .tar, .tar.gz), for capture stations on connections that drop.
 
 An upload is a row (:class:`~app.core.models.ResumableUpload`) and a partial file
-``uploads/<id>`` in storage. **The file's size is the upload's offset**: a PATCH appends to
-it under an exclusive ``flock`` (one writer at a time, in any API process on the host), and
-bytes that arrived before a connection dropped stay (unless the chunk carried a checksum,
-which they could not match). When the last byte is in, the archive goes through the same
-ingest as a single-request archive upload (:func:`app.core.ingest.create_snapshot`: the
-same checks, errors and ``Idempotency-Key`` semantics); the snapshot and its job are
-recorded on the upload in the same transaction, and the file goes once that commits. A
-refused archive keeps its error on the row and loses its bytes.
+``uploads/<id>`` in the receiving API host's scratch (:meth:`Storage.scratch_path`; with S3
+storage several API hosts need sticky routing for /v1/uploads). **The file's size is the
+upload's offset**: a PATCH appends to it under an exclusive ``flock`` (one writer at a
+time, in any API process on the host), and bytes that arrived before a connection dropped
+stay (unless the chunk carried a checksum, which they could not match). When the last byte
+is in, the archive goes through the same ingest as a single-request archive upload
+(:func:`app.core.ingest.create_snapshot`: the same checks, errors and ``Idempotency-Key``
+semantics); the snapshot and its job are recorded on the upload in the same transaction,
+and the file goes once that commits. A refused archive keeps its error on the row and loses
+its bytes.
 
 Every write moves ``expires_at`` to ``upload_expiry_s`` from now; :func:`expire` (beat's
 ``maintenance.uploads``) deletes expired uploads, their files, and partial files without a
@@ -47,7 +49,7 @@ from app.core.errors import (
 from app.core.ingest.common import _disk_full, _no_space
 from app.core.models import ResumableUpload, new_id, utcnow
 from app.core.settings import Settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 TUS_VERSION = "1.0.0"
 TUS_EXTENSIONS = "creation,termination,checksum,expiration"
@@ -194,7 +196,7 @@ def _check_new(new: NewUpload, settings: Settings) -> None:
 
 
 def create(
-    session: Session, storage: LocalStorage, settings: Settings, new: NewUpload
+    session: Session, storage: Storage, settings: Settings, new: NewUpload
 ) -> tuple[ResumableUpload, bool]:
     """A new upload with an empty partial file, or the unexpired upload that already has
     this ``idempotency_key``, ``sha256`` and length (so a client that lost its upload URL
@@ -218,7 +220,8 @@ def create(
             .order_by(ResumableUpload.created_at.desc())
         ).first()
         if earlier is not None and (
-            earlier.state != UploadState.receiving or storage.exists(earlier.storage_key)
+            earlier.state != UploadState.receiving
+            or storage.scratch_path(earlier.storage_key).exists()
         ):
             return earlier, False
     upload_id = new_id()
@@ -233,7 +236,7 @@ def create(
         storage_key=f"{FOLDER}/{upload_id}",
         expires_at=utcnow() + timedelta(seconds=settings.upload_expiry_s),
     )
-    path = storage.path(upload.storage_key)
+    path = storage.scratch_path(upload.storage_key)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         path.touch(exist_ok=False)
@@ -257,13 +260,13 @@ def get(session: Session, upload_id: str, now: datetime | None = None) -> Resuma
     return upload
 
 
-def offset(storage: LocalStorage, upload: ResumableUpload) -> int:
+def offset(storage: Storage, upload: ResumableUpload) -> int:
     """Bytes received: the partial file's size while receiving, the length afterwards;
     404 when a receiving upload's file is gone."""
     if upload.state != UploadState.receiving:
         return upload.length
     try:
-        return storage.path(upload.storage_key).stat().st_size
+        return storage.scratch_path(upload.storage_key).stat().st_size
     except FileNotFoundError:
         raise NotFound(f"upload {upload.id}: its bytes are gone", code="UploadExpired") from None
 
@@ -396,7 +399,7 @@ class Receiver:
 def finish(
     factory: sessionmaker[Session],
     lookup: sessionmaker[Session],
-    storage: LocalStorage,
+    storage: Storage,
     settings: Settings,
     upload_id: str,
 ) -> ResumableUpload:
@@ -415,8 +418,9 @@ def finish(
             return upload
         upload.state = UploadState.processing
     try:
-        _check_sha256(storage.path(upload.storage_key), upload)
-        with factory.begin() as session, storage.open(upload.storage_key) as fh:
+        archive = storage.scratch_path(upload.storage_key)
+        _check_sha256(archive, upload)
+        with factory.begin() as session, archive.open("rb") as fh:
             result = ingest.create_snapshot(
                 session,
                 storage,
@@ -473,10 +477,10 @@ def _check_sha256(path: Path, upload: ResumableUpload) -> None:
         )
 
 
-def terminate(session: Session, storage: LocalStorage, upload: ResumableUpload) -> None:
+def terminate(session: Session, storage: Storage, upload: ResumableUpload) -> None:
     """Delete the upload and its bytes (after commit); 423 while a request writes it or its
     archive is being ingested. A snapshot it made stays."""
-    path = storage.path(upload.storage_key)
+    path = storage.scratch_path(upload.storage_key)
     if path.exists():
         os.close(_lock(path, upload.id))  # only to learn that nobody holds it
     session.delete(upload)
@@ -495,7 +499,7 @@ def _locked(path: Path) -> bool:
 
 
 def expire(
-    session: Session, storage: LocalStorage, orphan_age_s: float, now: datetime | None = None
+    session: Session, storage: Storage, orphan_age_s: float, now: datetime | None = None
 ) -> dict[str, int]:
     """Delete uploads past ``expires_at`` (rows now, files after commit; one a request is
     writing waits for the next run) and partial files with no row once ``orphan_age_s``
@@ -507,14 +511,14 @@ def expire(
     ).all()
     gone: list[str] = []
     for upload in expired:
-        if _locked(storage.path(upload.storage_key)):
+        if _locked(storage.scratch_path(upload.storage_key)):
             continue
         gone.append(upload.id)
         retention.delete_after_commit(session, storage, upload.storage_key)
     if gone:
         session.execute(delete(ResumableUpload).where(ResumableUpload.id.in_(gone)))
         counts["uploads_expired"] = len(gone)
-    folder = storage.root / FOLDER
+    folder = storage.scratch_path(FOLDER)
     names = [p.name for p in folder.iterdir() if p.is_file()] if folder.is_dir() else []
     known = {
         upload_id

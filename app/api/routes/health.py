@@ -37,8 +37,7 @@ def readyz(settings: SettingsDep, storage: StorageDep) -> dict[str, object] | JS
     except Exception as exc:
         checks["database"] = f"error: {type(exc).__name__}"
     try:
-        probe = storage.tmp_dir()
-        probe.rmdir()
+        storage.check()  # S3: the bucket answers and this host's scratch is writable
         checks["storage"] = "ok"
     except OSError as exc:
         checks["storage"] = f"error: {exc.strerror}"

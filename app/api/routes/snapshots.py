@@ -199,7 +199,7 @@ def get_pointcloud(
             raise InvalidInput("max_points: a decimated cloud is PLY only; leave out format=laz")
         cached = decimate.ensure_decimated(storage, cloud_key, max_points)
         return FileResponse(
-            storage.path(cached.key),
+            storage.local_file(cached.key),
             media_type=PLY_MEDIA_TYPE,
             filename=f"{snapshot_id}-{cached.n_points}.ply",
             headers={
@@ -262,12 +262,14 @@ def list_images(
 )
 def get_image(
     snapshot_id: str, name: str, session: SessionDep, storage: StorageDep, key: ReadKey
-) -> FileResponse:
+) -> Response:
     """One photo's bytes with its media type (404 for a name the snapshot lacks, 410 once
     the retention policy deleted its photos)."""
     snap = snapshots.get(session, snapshot_id)
     auth.require_environment(key, snap.environment_id, detail=f"snapshot {snapshot_id} not found")
     file_key, media_type = snapshot_images.photo_file(session, storage, snap, name)
-    return FileResponse(
-        storage.path(file_key), media_type=media_type, headers={"Cache-Control": "private"}
-    )
+    headers = {"Cache-Control": "private"}
+    local = storage.cached_file(file_key)
+    if local is not None:
+        return FileResponse(local, media_type=media_type, headers=headers)
+    return StreamingResponse(storage.iter_bytes(file_key), media_type=media_type, headers=headers)

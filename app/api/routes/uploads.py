@@ -383,7 +383,7 @@ async def patch_upload(
     remaining = max(upload.length - start, 0)
     declared = request.headers.get("content-length")
     receiver = uploads.Receiver(
-        storage.path(upload.storage_key), upload.id, start, remaining, checksum
+        storage.scratch_path(upload.storage_key), upload.id, start, remaining, checksum
     )
     try:
         await run_in_threadpool(receiver.open)

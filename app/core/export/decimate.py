@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from app.core.errors import Conflict
 from app.core.export.derived import ensure_derived
 from app.core.export.ply import PlyError, colors_of, iter_vertices, read_header
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 SEED = 20
 MIN_POINTS = 1_000
@@ -89,16 +89,16 @@ def ply_header(n_points: int, comment: str = "") -> bytes:
     return ("\n".join(lines) + "\n").encode("ascii")
 
 
-def total_points(storage: LocalStorage, pointcloud_key: str) -> int:
+def total_points(storage: Storage, pointcloud_key: str) -> int:
     """Points in the stored cloud (its header's vertex count); 409 PointCloudUnreadable
     when the header cannot be read."""
     try:
-        return read_header(storage.path(pointcloud_key))[1].count
+        return read_header(storage.local_file(pointcloud_key))[1].count
     except PlyError as exc:
         raise Conflict(str(exc), code="PointCloudUnreadable") from exc
 
 
-def ensure_decimated(storage: LocalStorage, pointcloud_key: str, max_points: int) -> Decimated:
+def ensure_decimated(storage: Storage, pointcloud_key: str, max_points: int) -> Decimated:
     """The cached decimated cloud of the PLY at ``pointcloud_key`` with :func:`level`
     (``max_points``) points, or all of them when it has fewer, made first unless a file at
     least as new as the cloud is there.
@@ -107,15 +107,14 @@ def ensure_decimated(storage: LocalStorage, pointcloud_key: str, max_points: int
     total = total_points(storage, pointcloud_key)
     n = min(level(max_points), total)
     key = decimated_key(pointcloud_key, n)
-    source = storage.path(pointcloud_key)
 
-    def write(part: Path) -> None:
+    def write(source: Path, part: Path) -> None:
         records = decimate(source, n)
         with part.open("wb") as out:
             out.write(ply_header(len(records), f"twindelta: {n} of {total} points"))
             out.write(records.tobytes())
 
-    ensure_derived(source, storage.path(key), write, "the decimated cloud")
+    ensure_derived(storage, pointcloud_key, key, write, "the decimated cloud")
     return Decimated(key, n, total)
 
 

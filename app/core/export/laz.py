@@ -22,7 +22,7 @@ from numpy.typing import NDArray
 
 from app.core.export.derived import ensure_derived
 from app.core.export.ply import PlyError, colors_of, iter_vertices, positions_of
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 MEDIA_TYPE = "application/vnd.laszip"
 SCALE_M = 1e-4  # 0.1 mm
@@ -37,15 +37,18 @@ def laz_key(pointcloud_key: str) -> str:
 
 
 def ensure_laz(
-    storage: LocalStorage, pointcloud_key: str, generator: str, chunk: int = CHUNK_POINTS
+    storage: Storage, pointcloud_key: str, generator: str, chunk: int = CHUNK_POINTS
 ) -> str:
     """The key of the LAZ of the PLY at ``pointcloud_key``, converting it first unless a
     LAZ at least as new as the PLY is there. Conflict (409 ``PointCloudUnreadable``) when
     the PLY cannot be read or converted; InsufficientStorage (507) when the disk is full."""
     key = laz_key(pointcloud_key)
-    source = storage.path(pointcloud_key)
     ensure_derived(
-        source, storage.path(key), lambda part: write_laz(source, part, generator, chunk), "the LAZ"
+        storage,
+        pointcloud_key,
+        key,
+        lambda source, part: write_laz(source, part, generator, chunk),
+        "the LAZ",
     )
     return key
 

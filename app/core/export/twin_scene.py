@@ -29,7 +29,7 @@ from app.core.errors import Conflict, NotFound
 from app.core.export.gltf import ModelGeometry, ModelGeometryError, SceneNode, write_glb
 from app.core.export.ply import PlyError, read_model
 from app.core.models import Change, Environment, LibraryObject, Snapshot, TwinInstance
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 log = logging.getLogger(__name__)
 
@@ -145,7 +145,7 @@ def _pose_quality(
     return dict(quality) if isinstance(quality, dict) else None
 
 
-def glb(session: Session, storage: LocalStorage, twin_view: TwinView) -> bytes:
+def glb(session: Session, storage: Storage, twin_view: TwinView) -> bytes:
     """The ``.glb`` of ``twin_view`` (see the module docstring and :mod:`.gltf`)."""
     models: dict[str, ModelGeometry] = {}
     missing: dict[str, str] = {}  # library object id → why its model cannot be had
@@ -215,11 +215,11 @@ def _library_object(session: Session, row: InstanceState) -> LibraryObject | Non
     return objects.by_names(session, [row.object_name]).get(row.object_name)
 
 
-def load_model(storage: LocalStorage, obj: LibraryObject) -> ModelGeometry:
+def load_model(storage: Storage, obj: LibraryObject) -> ModelGeometry:
     """The library object's model in metres (module docstring). PlyError when the file
     cannot be read; OSError (FileNotFoundError) when no readable model is stored."""
     if PurePosixPath(obj.file_key).suffix.lower() == ".ply":
-        model = read_model(storage.path(obj.file_key))
+        model = read_model(storage.local_file(obj.file_key))
         scale = objects.UNITS.get(obj.units, 1.0)
         return ModelGeometry(
             positions=model.positions * scale,
@@ -229,5 +229,5 @@ def load_model(storage: LocalStorage, obj: LibraryObject) -> ModelGeometry:
         )
     if obj.artifacts_key is None:
         raise FileNotFoundError(f"object {obj.id} is not prepared yet ({obj.state})")
-    cloud = read_model(storage.path(f"{obj.artifacts_key}/model.ply"))
+    cloud = read_model(storage.local_file(f"{obj.artifacts_key}/model.ply"))
     return ModelGeometry(positions=cloud.positions, normals=cloud.normals, colors=cloud.colors)

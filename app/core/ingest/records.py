@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from sqlalchemy import select
@@ -16,7 +17,7 @@ from app.core.ingest.images import probe_image
 from app.core.ingest.parsers import parse_detections
 from app.core.models import SnapshotImage, utcnow
 from app.core.settings import Settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 
 @dataclass(frozen=True)
@@ -36,27 +37,31 @@ class ImageRecord:
 
 
 def read_capture(
-    storage: LocalStorage, prefix: str, classes: Sequence[str], settings: Settings
+    storage: Storage, prefix: str, classes: Sequence[str], settings: Settings
 ) -> list[ImageRecord]:
     """Re-read a stored capture: each image's size (checked as on upload) and its detections,
     sorted by image name. Raises the upload's DomainErrors if the files changed since."""
-    images_dir = storage.path(f"{prefix}/images")
+    images_dir = storage.local_dir(f"{prefix}/images")
+    try:
+        labels_dir: Path | None = storage.local_dir(f"{prefix}/labels")
+    except FileNotFoundError:
+        labels_dir = None
     records: list[ImageRecord] = []
     for path in sorted(p for p in images_dir.iterdir() if p.is_file()):
         if path.name.startswith(".") or path.suffix.lower() not in IMAGE_SUFFIXES:
             continue
         file_key = f"{prefix}/images/{path.name}"
-        with storage.open(file_key) as fh:
+        with path.open("rb") as fh:
             width, height = probe_image(
                 fh, file_key, settings.max_image_pixels, settings.max_image_decoded_bytes
             )
-        labels_key: str | None = f"{prefix}/labels/{path.stem}.txt"
+        labels_path = labels_dir / f"{path.stem}.txt" if labels_dir is not None else None
+        labels_key: str | None = None
         detections: list[dict[str, Any]] = []
-        if labels_key is not None and storage.exists(labels_key):
-            with storage.open(labels_key) as fh:
+        if labels_path is not None and labels_path.is_file():
+            labels_key = f"{prefix}/labels/{labels_path.name}"
+            with labels_path.open("rb") as fh:
                 detections = parse_detections(fh, labels_key, classes, settings.max_detection_lines)
-        else:
-            labels_key = None
         records.append(
             ImageRecord(
                 name=path.name,

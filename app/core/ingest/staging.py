@@ -31,7 +31,7 @@ from app.core.ingest.common import (
     _too_large,
 )
 from app.core.settings import Settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 
 @dataclass(frozen=True)
@@ -192,12 +192,12 @@ _STALE_UNLOCKED_S = 3600.0
 
 
 @contextmanager
-def _staging_dir(storage: LocalStorage) -> Iterator[Path]:
+def _staging_dir(storage: Storage) -> Iterator[Path]:
     """A private staging folder ``.tmp/<id>``, removed on the way out. While it exists this
     process holds an exclusive ``flock`` on ``.tmp/<id>.lock``: the kernel drops the lock
     when the process dies, which is how :func:`sweep_staging` tells an abandoned folder (an
     API killed mid-upload) from one in use by another process."""
-    base = storage.path(STAGING)
+    base = storage.scratch_path(STAGING)
     name = uuid.uuid4().hex
     lock_path, root = base / f"{name}.lock", base / name
     try:
@@ -222,11 +222,11 @@ def _staging_dir(storage: LocalStorage) -> Iterator[Path]:
         os.close(fd)
 
 
-def sweep_staging(storage: LocalStorage) -> int:
+def sweep_staging(storage: Storage) -> int:
     """Remove staging folders whose process is gone (their lock is free), and unlocked
     leftovers older than an hour; returns how many were removed. Safe beside live uploads
     in other processes: a held lock is never taken."""
-    base = storage.path(STAGING)
+    base = storage.scratch_path(STAGING)
     if not base.is_dir():
         return 0
     removed = 0

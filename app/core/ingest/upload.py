@@ -27,7 +27,7 @@ from app.core.ingest.parsers import parse_cameras, parse_classes, parse_detectio
 from app.core.ingest.staging import UploadPart, _add, _Staged, _Staging, _staging_dir, sweep_staging
 from app.core.models import Environment, Job, Snapshot, new_id
 from app.core.settings import Settings
-from app.core.storage import LocalStorage
+from app.core.storage import Storage
 
 
 @dataclass(frozen=True)
@@ -118,7 +118,7 @@ def _probe_path(image: _Staged, max_pixels: int, max_decoded: int) -> tuple[int,
 
 def create_snapshot(
     session: Session,
-    storage: LocalStorage,
+    storage: Storage,
     settings: Settings,
     environment_id: str,
     files: UploadFiles,
@@ -232,7 +232,7 @@ def _replay(session: Session, environment_id: str, key: str, digest: str) -> Ing
 
 def insert_snapshot(
     session: Session,
-    storage: LocalStorage,
+    storage: Storage,
     env_id: str,
     root: Path,
     fields: Mapping[str, Any],

@@ -3,8 +3,8 @@
     python -m bench.run [--only poll,c2c] [--quick]
 
 Runs the sub-benchmarks in order (poll, upload, reconstruct on the bench scene and on two
-other generated scenes, pose, scenarios, the tuning and test worlds, c2c, colmap),
-each as a subprocess so one failure does not lose the others; records each one's exit
+other generated scenes, pose, scenarios, the tuning and test worlds, c2c, colmap, capture
+sizes), each as a subprocess so one failure does not lose the others; records each one's exit
 status and wall time and writes ``bench/results/summary.json`` with the headline figures
 of every result file. Before running, as root, installs the tools some comparisons need
 (wrk, colmap, cloudcompare) with apt-get; otherwise says so and records
@@ -177,6 +177,17 @@ def _console(d: dict[str, Any]) -> dict[str, Any]:
     return {**{k: d.get(k) for k in keys}, "script_gzip_kb": _get(d, "script", "gzip_kb")}
 
 
+def _capture(d: dict[str, Any]) -> dict[str, Any]:
+    runs = d.get("runs", {})
+    target = runs.get("target_100_12MP", {})
+    return {
+        "growth": d.get("growth"),
+        "target_100_12MP_s": target.get("reconstruct_s"),
+        "target_median_m": target.get("distance_median_m"),
+        "target_completeness_1cm": target.get("completeness_1cm"),
+    }
+
+
 def _seed_args(seed: int) -> tuple[str, ...]:
     where = f"{TMP}/reconstruct_seed{seed}"
     return ("--seed", str(seed), "--scene", f"{where}/scene", "--work", f"{where}/work")
@@ -257,6 +268,16 @@ BENCHES: tuple[Bench, ...] = (
     ),
     Bench("c2c", "bench.c2c_bench", "c2c.json", (), ("--quick",), headline=_c2c),
     Bench("colmap", "bench.colmap_bench", "reconstruct_colmap.json", headline=_colmap),
+    # cost at real capture sizes (#22): 30-200 photos, 1-12 MP, policy, matching, target
+    Bench(
+        "capture",
+        "bench.capture_bench",
+        "capture.json",
+        (),
+        ("--quick",),
+        timeout_s=6 * 3600,
+        headline=_capture,
+    ),
     # the operator console (#20): a 2 M-point snapshot opened in headless Chromium
     Bench(
         "console",

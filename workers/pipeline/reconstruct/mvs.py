@@ -2,7 +2,8 @@
 and a geometric consistency filter across views.
 
 Everything is in the env frame, metres, OpenCV camera axes. Images are undistorted and
-scaled by ``options.mvs_scale`` first; depth maps live on that scaled pinhole grid.
+scaled first (:func:`working_scale`: ``mvs_scale``, bounded by ``mvs_max_image_size``);
+depth maps live on that scaled pinhole grid.
 """
 
 from __future__ import annotations
@@ -65,10 +66,19 @@ class Neighbours:
     far_seed: tuple[tuple[int, ...], ...] = ()
 
 
+def working_scale(width: int, height: int, scale: float, max_image_size: int) -> float:
+    """Scale of a width×height (px) image's depth map: ``scale``, lowered so the long side
+    is at most ``max_image_size`` px (-1: no bound)."""
+    if max_image_size <= 0:
+        return scale
+    return min(scale, max_image_size / max(width, height))
+
+
 def load_dense_views(
-    images_dir: Path, views: tuple[CameraView, ...], scale: float
+    images_dir: Path, views: tuple[CameraView, ...], scale: float, max_image_size: int = -1
 ) -> list[DenseView]:
-    """Read, undistort and rescale every view's image; K follows (pixel centres kept)."""
+    """Read, undistort and rescale (:func:`working_scale`) each view's image in turn, so only
+    the scaled images are held; K follows (pixel centres kept)."""
     out = []
     for v in views:
         img = read_image(Path(images_dir) / v.name)
@@ -81,8 +91,9 @@ def load_dense_views(
             )
         if np.any(dist):
             img = np.asarray(cv2.undistort(img, k, dist), dtype=np.uint8)
-        if scale != 1.0:
-            w, h = round(img.shape[1] * scale), round(img.shape[0] * scale)
+        s = working_scale(img.shape[1], img.shape[0], scale, max_image_size)
+        if s != 1.0:
+            w, h = round(img.shape[1] * s), round(img.shape[0] * s)
             img = np.asarray(cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA), np.uint8)
             sx, sy = w / v.intrinsics.width, h / v.intrinsics.height
             k = k.copy()

@@ -31,9 +31,10 @@ class ReconstructOptions:
     min_images: int = 3  # fewer photos than this: TooFewImages (2 at the least)
     # structure from motion
     max_num_features: int = 4096  # SIFT features per image; raise for large, busy scenes
-    max_image_size: int = -1  # long side (px) images are downscaled to for SIFT; -1: as given
-    exhaustive_max_images: int = 60  # exhaustive matching up to this many images, then sequential
-    sequential_overlap: int = 12  # neighbours matched per image in sequential matching
+    max_image_size: int = 1600  # long side (px) images are downscaled to for SIFT; -1: as given
+    exhaustive_max_images: int = 60  # exhaustive matching up to this many images, then pairs
+    sequential_overlap: int = 12  # next images matched per image beyond exhaustive (+ 2^k ahead)
+    loop_neighbours: int = 8  # beyond exhaustive: most similar images (retrieval) matched per image
     min_registered_fraction: float = 0.6  # share of images SfM must register, else it fails
     # markers
     marker_subpixel: bool = True  # refine detected ArUco corners to sub-pixel accuracy
@@ -41,6 +42,7 @@ class ReconstructOptions:
     # multi-view stereo
     cuda_dense: bool = False  # pycolmap CUDA PatchMatch instead of CPU SGBM (SfM mode, CUDA builds)
     mvs_scale: float = 1.0  # image scale of the depth maps; 0.5: a quarter of the pixels, coarser
+    mvs_max_image_size: int = 1600  # depth maps' long side at most (px, after mvs_scale); -1: none
     pairs_per_view: int = 1  # stereo partners per view; 2 for more complete, slower clouds
     max_disparities: int = 256  # SGBM disparity window (px); raise for deep scenes, costs time
     sgbm_block_size: int = 5  # SGBM matching block (px, odd); larger smooths, loses detail

@@ -16,6 +16,7 @@ import pycolmap
 from numpy.typing import NDArray
 
 from workers.pipeline.geometry import Mat4, invert_rigid
+from workers.pipeline.reconstruct import pairs
 from workers.pipeline.reconstruct.cameras import (
     CamerasSpec,
     CameraView,
@@ -90,29 +91,43 @@ def _extract(
         )
 
 
-def _match(database: Path, n_images: int, options: ReconstructOptions) -> None:
+def _match(
+    database: Path, sfm_dir: Path, image_names: list[str], options: ReconstructOptions
+) -> None:
+    """Exhaustive matching up to ``exhaustive_max_images`` photos, else the pairs of
+    :func:`pairs.matching_pairs` (sequential + retrieval), written to ``sfm/pairs.txt``."""
     matching = pycolmap.FeatureMatchingOptions()
     matching.num_threads = options.num_threads
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = options.seed
-    if n_images <= options.exhaustive_max_images:
+    if len(image_names) <= options.exhaustive_max_images:
         pycolmap.match_exhaustive(
             database,
             matching_options=matching,
             verification_options=verification,
             device=pycolmap.Device.cpu,
         )
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = options.sequential_overlap
-        pairing.quadratic_overlap = True
-        pycolmap.match_sequential(
-            database,
-            matching_options=matching,
-            pairing_options=pairing,
-            verification_options=verification,
-            device=pycolmap.Device.cpu,
-        )
+        return
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        descriptors = [np.asarray(db.read_descriptors(ids[n]).data) for n in image_names]
+    finally:
+        db.close()
+    chosen = pairs.matching_pairs(
+        descriptors, options.sequential_overlap, options.loop_neighbours, options.seed
+    )
+    pair_file = sfm_dir / "pairs.txt"
+    pair_file.write_text("".join(f"{image_names[i]} {image_names[j]}\n" for i, j in chosen))
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = pair_file
+    pycolmap.match_image_pairs(
+        database,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
 
 
 def _map(
@@ -185,7 +200,7 @@ def run_sfm(
     progress("features", 1.0)
     if not (sfm_dir / "matches.done").exists():
         progress("matching", 0.0)
-        _match(database, len(image_names), options)
+        _match(database, sfm_dir, image_names, options)
         (sfm_dir / "matches.done").touch()
     progress("matching", 1.0)
     if (model_dir / "images.bin").exists():

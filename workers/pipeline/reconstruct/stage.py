@@ -243,7 +243,9 @@ def _known_pose_frame(run: _Run, clock: _Clock) -> _Frame:
             env_views, dets, run.marker_ref, options.min_marker_views
         )
     clock("sparse", 0.0)
-    dense_views = mvs.load_dense_views(run.images_dir, env_views, options.mvs_scale)
+    dense_views = mvs.load_dense_views(
+        run.images_dir, env_views, options.mvs_scale, options.mvs_max_image_size
+    )
     pts, vis = known_poses.triangulate_known(dense_views, options)
     quality["sparse_points"] = len(pts)
     return _Frame(env_views, pts, vis, None, dense_views, quality)
@@ -332,7 +334,9 @@ def _cpu_dense(
     clock("load", 0.0)
     dense_views = frame.dense_views
     if dense_views is None:
-        dense_views = mvs.load_dense_views(run.images_dir, frame.views, options.mvs_scale)
+        dense_views = mvs.load_dense_views(
+            run.images_dir, frame.views, options.mvs_scale, options.mvs_max_image_size
+        )
     clock("neighbours", 0.0)
     pts, vis = frame.points_env, frame.visibility
     nbrs = mvs.select_neighbours(dense_views, pts, vis, options)

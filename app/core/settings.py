@@ -7,6 +7,7 @@ The embedded default needs none of them: SQLite, a file-system broker and local 
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from pathlib import Path
 
@@ -23,6 +24,19 @@ class Settings(BaseSettings):
     database_url: str | None = None
     broker_url: str | None = None
     storage_dir: Path | None = None
+    # Blob storage: unset, every file lives under the local folder ``storage_dir`` (default
+    # data_dir/files); ``s3://bucket/optional/prefix``, in an S3-compatible bucket (credentials
+    # from the standard AWS environment: AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, profiles).
+    storage_url: str | None = None
+    # The S3 API's address for MinIO and other S3-compatible stores (unset: AWS's own).
+    s3_endpoint_url: str | None = None
+    # The bucket's region (unset: the AWS configuration's default).
+    s3_region: str | None = None
+    # This host's private folder with S3 storage: upload staging, tus partial files, job work
+    # folders and the read cache (default data_dir/scratch; local storage uses its own folder).
+    scratch_dir: Path | None = None
+    # The read cache in scratch is trimmed, least recently used first, past this many bytes.
+    scratch_cache_max_bytes: int = Field(default=20 * 1024**3, gt=0)
     bootstrap_admin_key: str | None = None
     # After this many unknown or revoked API keys from one client address within
     # ``auth_failure_window_s``, that address gets 429 (with Retry-After) for the rest of the
@@ -124,6 +138,20 @@ class Settings(BaseSettings):
                 )
         return value
 
+    @field_validator("storage_url", "s3_endpoint_url", "s3_region")
+    @classmethod
+    def _blank_is_unset(cls, value: str | None) -> str | None:
+        if value is None or not value.strip():
+            return None  # ``NAME=`` (docker-compose's default when unset) means unset
+        return value.strip()
+
+    @field_validator("storage_url")
+    @classmethod
+    def _check_storage_url(cls, value: str | None) -> str | None:
+        if value is not None:
+            parse_s3_url(value)
+        return value
+
     @model_validator(mode="after")
     def _require_secret_key_with_a_broker_server(self) -> Settings:
         if self.secret_key is None and self.broker_url:
@@ -173,6 +201,31 @@ class Settings(BaseSettings):
     @property
     def resolved_storage_dir(self) -> Path:
         return (self.storage_dir or self.data_dir / "files").resolve()
+
+    @property
+    def resolved_scratch_dir(self) -> Path:
+        return (self.scratch_dir or self.data_dir / "scratch").resolve()
+
+
+_BUCKET = re.compile(r"[a-z0-9][a-z0-9.-]{1,61}[a-z0-9]")
+
+
+def parse_s3_url(url: str) -> tuple[str, str]:
+    """``s3://bucket/optional/prefix`` as (bucket, prefix without slashes at either end);
+    ValueError naming what is wrong."""
+    scheme, sep, rest = url.partition("://")
+    if scheme != "s3" or not sep:
+        raise ValueError(f"TWINDELTA_STORAGE_URL: {url!r} is not s3://bucket[/prefix]")
+    bucket, _, prefix = rest.partition("/")
+    if not _BUCKET.fullmatch(bucket):
+        raise ValueError(
+            f"TWINDELTA_STORAGE_URL: {bucket!r} is not a bucket name (3-63 lowercase letters, "
+            "digits, dots and hyphens)"
+        )
+    prefix = prefix.strip("/")
+    if prefix and any(part in ("", ".", "..") for part in prefix.split("/")):
+        raise ValueError(f"TWINDELTA_STORAGE_URL: the prefix {prefix!r} has an empty, . or .. part")
+    return bucket, prefix
 
 
 @lru_cache(maxsize=1)

@@ -263,7 +263,7 @@ def _newest_mtime(folder: Path) -> float:
 PART_BYTES = 8 * 1024 * 1024  # multipart part size: S3's minimum is 5 MiB, 10 000 parts at most
 STREAM_PARTS = 1  # parts of a streamed write in memory at once (see S3Storage)
 TRANSFER_THREADS = 4  # parts in flight per transfer
-DOWNLOAD_THREADS = 8  # files fetched at once by local_dir
+DOWNLOAD_THREADS = 8  # files fetched at once by local_dir, sent at once by move_in
 DELETE_BATCH = 1000  # S3's DeleteObjects limit
 TRIM_INTERVAL_S = 60.0  # a process walks the cache to trim it at most this often
 # Cache files handed out within this long are never trimmed (a running job reads them);
@@ -414,8 +414,13 @@ class S3Storage(Storage):
             part.unlink(missing_ok=True)
         return path
 
-    def _adopt(self, local: Path, key: str) -> None:
-        """Make the uploaded file ``local`` the cache copy of ``key``."""
+    def _upload(self, local: Path, key: str) -> None:
+        """Upload the file ``local`` as ``key`` (multipart past ``PART_BYTES``), then make it
+        the cache copy of ``key``."""
+        with self._errors(key):
+            self.client.upload_file(
+                str(local), self.bucket, self._object(key), Config=self.transfer
+            )
         stat = self._stat(key)
         if stat is None:
             return
@@ -512,12 +517,8 @@ class S3Storage(Storage):
             pairs = [(local, key)]
         else:
             raise FileNotFoundError(errno.ENOENT, f"nothing to move in at {local}")
-        for path, file_key in pairs:
-            with self._errors(file_key):
-                self.client.upload_file(
-                    str(path), self.bucket, self._object(file_key), Config=self.transfer
-                )
-            self._adopt(path, file_key)
+        with ThreadPoolExecutor(DOWNLOAD_THREADS) as pool:
+            list(pool.map(lambda pair: self._upload(*pair), pairs))
         if local.is_dir():
             shutil.rmtree(local, ignore_errors=True)
 

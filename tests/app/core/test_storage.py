@@ -11,6 +11,7 @@ import os
 import threading
 import time
 import tracemalloc
+import uuid
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -18,7 +19,9 @@ from typing import Any
 
 import pytest
 from pydantic import ValidationError
+from sqlalchemy.orm import Session
 
+from app.core import retention
 from app.core.errors import InvalidInput
 from app.core.settings import Settings
 from app.core.storage import PART_BYTES, LocalStorage, S3Storage, Storage, open_storage
@@ -317,3 +320,18 @@ def test_threads_share_one_client(s3_storage_url: tuple[str, str], tmp_path: Pat
     for t in threads:
         t.join()
     assert all(s is seen[0] for s in seen)
+
+
+def test_retention_sweeps_orphans_from_the_bucket(s3: S3Storage, session: Session) -> None:
+    """cleanup_files against a bucket: folders of snapshots and objects with no row go once
+    idle for max_age_s (by LastModified); a killed job's work folder in scratch at once."""
+    s3.write_bytes(f"snapshots/{uuid.uuid4()}/images/a.jpg", b"a")
+    s3.write_bytes(f"objects/{uuid.uuid4()}/model.ply", b"ply")
+    work = s3.scratch_path(f".work/{uuid.uuid4()}")  # of a job with no row
+    work.mkdir(parents=True)
+    counts = retention.cleanup_files(session, s3, max_age_s=3600)
+    assert (counts["snapshots"], counts["objects"], counts["work"]) == (0, 0, 1)  # too new
+    assert not work.exists() and len(_bucket_keys(s3)) == 2
+    counts = retention.cleanup_files(session, s3, max_age_s=3600, now=time.time() + 7200)
+    assert (counts["snapshots"], counts["objects"]) == (1, 1)
+    assert _bucket_keys(s3) == []

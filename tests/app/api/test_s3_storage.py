@@ -1,7 +1,9 @@
 """The API with S3 storage (a bucket on the loopback emulator, tests/s3_server.py): a
 snapshot archive uploaded over HTTP lands in the bucket, not in the local folder; photos and
 clouds stream back byte-identical; derived files (LAZ, decimated) are published to the
-bucket; deleting its environment empties the snapshot's prefix; /readyz probes the bucket."""
+bucket; deleting its environment empties the snapshot's prefix; a resumable upload is staged
+in this host's scratch; jobs run with another scratch (another host) read and publish
+through the bucket; /readyz probes the bucket."""
 
 from __future__ import annotations
 
@@ -35,6 +37,9 @@ from tests.app.api.test_snapshots_upload import (
 from tests.app.api.test_uploads_api import create as create_upload
 from tests.app.api.test_uploads_api import patch as patch_upload
 from tests.app.conftest import Keys, SentTasks
+from tests.app.core import test_twin_order as twin_order
+from tests.workers import fake_pipeline
+from workers import snapshot as snapshot_glue
 
 
 @dataclass
@@ -178,3 +183,44 @@ def test_readyz_names_a_missing_bucket(
     assert r.json()["checks"]["storage"] == (
         "error: bucket twindelta-no-such-bucket: no such bucket"
     )
+
+
+def test_jobs_on_another_host_read_and_publish_through_the_bucket(
+    s3_client: TestClient,
+    keys: Keys,
+    bucket: Bucket,
+    data_dir: Path,
+    session_factory: sessionmaker[Session],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Snapshot and comparison jobs (production glue, the fake pipeline for geometry) on a
+    "worker host" whose scratch is its own: they read the captures from the bucket and
+    publish clouds, cameras and change clusters to it; the API host then serves them."""
+    fake_pipeline.install(monkeypatch.setattr)
+    client = s3_client
+    env_id = twin_order.make_env(client, keys)
+    snaps = [twin_order.upload(client, keys, env_id, scene) for scene in twin_order.SCENES[:2]]
+    monkeypatch.setenv("TWINDELTA_SCRATCH_DIR", str(data_dir / "worker"))
+    get_settings.cache_clear()
+    for snap_id in snaps:
+        job_id = twin_order.snapshot_job(session_factory, snap_id)
+        assert snapshot_glue.run(job_id) == "succeeded"
+    assert twin_order.run_comparisons_newest_first(session_factory) == [2]
+    monkeypatch.delenv("TWINDELTA_SCRATCH_DIR")
+    get_settings.cache_clear()
+
+    for snap_id in snaps:
+        assert set(bucket.listed(f"snapshots/{snap_id}/reconstruction/")) == {
+            f"snapshots/{snap_id}/reconstruction/cloud.ply",
+            f"snapshots/{snap_id}/reconstruction/cameras.json",
+        }
+    [clusters] = bucket.listed(f"snapshots/{snaps[1]}/comparisons/")
+    assert clusters.endswith("/clusters.npz")
+    comparison_id = clusters.split("/")[3]
+    r = client.get(f"/v1/comparisons/{comparison_id}/clusters", headers=keys.headers("read"))
+    assert r.status_code == 200, r.text
+    assert (data_dir / "scratch" / "cache" / clusters).is_file()  # fetched by the API host
+    assert not (data_dir / "worker" / "local" / ".work").exists() or not any(
+        (data_dir / "worker" / "local" / ".work").iterdir()
+    )  # work folders removed after each job
+    assert _local_snapshot_files(data_dir) == []

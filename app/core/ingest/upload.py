@@ -239,17 +239,45 @@ def insert_snapshot(
     idempotency_key: str | None,
     digest: str,
 ) -> Ingested:
-    """Insert an upload's snapshot (state ``uploaded``, the environment's next ``seq``, the
-    columns in ``fields``; ``cameras_key`` when ``has_cameras``) and its job, and move the
-    checked files at ``root`` in under ``snapshots/<id>``. The photo and the scan uploads
-    both end here. A concurrent upload that takes the seq or the ``Idempotency-Key`` first
-    makes it look again (the key's replay, or the next seq), at most ``_SEQ_RETRIES`` times:
-    then 409 ``ConcurrentUpload``. 404 when the environment went while the files were
-    checked."""
+    """Move the checked files at ``root`` in under ``snapshots/<id>``, then insert the
+    upload's snapshot (state ``uploaded``, the environment's next ``seq``, the columns in
+    ``fields``; ``cameras_key`` when ``has_cameras``) and its job. The photo and the scan
+    uploads both end here. The files move first, before the environment is locked: with S3
+    storage that is an upload, and other uploads to the environment must not wait for it. A
+    concurrent upload that takes the seq or the ``Idempotency-Key`` first makes it look
+    again (the key's replay, whose files then go, or the next seq), at most
+    ``_SEQ_RETRIES`` times: then 409 ``ConcurrentUpload``. 404 when the environment went
+    while the files were checked."""
+    snapshot_id = new_id()
+    prefix = f"snapshots/{snapshot_id}"
+    try:
+        storage.move_in(root, prefix)
+        ingested = _insert_rows(session, env_id, snapshot_id, fields, idempotency_key, digest)
+    except BaseException:
+        storage.delete_prefix(prefix)
+        raise
+    if not ingested.created:  # a replay: the earlier snapshot's files serve it
+        storage.delete_prefix(prefix)
+        return ingested
+    # The files are in place before the row is committed (a reader never sees a row without
+    # its files); if the transaction rolls back instead (a failed commit, an error after
+    # this), they go with it.
+    session.info.setdefault(_MOVED_IN, []).append((storage, prefix))
+    return ingested
+
+
+def _insert_rows(
+    session: Session,
+    env_id: str,
+    snapshot_id: str,
+    fields: Mapping[str, Any],
+    idempotency_key: str | None,
+    digest: str,
+) -> Ingested:
+    """The snapshot row and its job (:func:`insert_snapshot`), or the replay of the key."""
     # Serialise uploads to one environment (PostgreSQL row lock; SQLite has one writer).
     session.execute(select(Environment.id).where(Environment.id == env_id).with_for_update())
     environments.get(session, env_id)
-    snapshot_id = new_id()
     prefix = f"snapshots/{snapshot_id}"
     snap: Snapshot | None = None
     for _ in range(_SEQ_RETRIES):
@@ -284,18 +312,7 @@ def insert_snapshot(
             f"environment {env_id}: too many concurrent uploads, try again",
             code="ConcurrentUpload",
         )
-    try:
-        storage.move_in(root, prefix)
-        job = jobs.create(
-            session, JobKind.snapshot, TASK, environment_id=env_id, snapshot_id=snap.id
-        )
-    except BaseException:
-        storage.delete_prefix(prefix)
-        raise
-    # The files are in place before the row is committed (a reader never sees a row without
-    # its files); if the transaction rolls back instead (a failed commit, an error after
-    # this), they go with it.
-    session.info.setdefault(_MOVED_IN, []).append((storage, prefix))
+    job = jobs.create(session, JobKind.snapshot, TASK, environment_id=env_id, snapshot_id=snap.id)
     return Ingested(snapshot=snap, job=job, created=True)
 
 

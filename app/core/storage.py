@@ -269,7 +269,7 @@ TRIM_INTERVAL_S = 60.0  # a process walks the cache to trim it at most this ofte
 # Cache files handed out within this long are never trimmed (a running job reads them);
 # raise scratch_cache_max_bytes rather than this when jobs need more.
 TRIM_KEEP_RECENT_S = 3600.0
-_MISSING = {"404", "NoSuchKey", "NotFound", "NoSuchBucket"}
+_MISSING = {"404", "NoSuchKey", "NotFound"}  # error codes of a missing key
 
 
 @dataclass(frozen=True)
@@ -354,7 +354,7 @@ class S3Storage(Storage):
         except ClientError as exc:
             error = exc.response.get("Error", {})
             code = str(error.get("Code", ""))
-            if code in _MISSING and code != "NoSuchBucket":
+            if code in _MISSING:
                 raise FileNotFoundError(errno.ENOENT, f"no stored object {what!r}") from exc
             detail = f"bucket {self.bucket}: {what}: {code} {error.get('Message', '')}".strip()
             raise OSError(errno.EIO, detail) from exc
@@ -392,7 +392,10 @@ class S3Storage(Storage):
             return False
         if own.st_size != stat.size_bytes or own.st_mtime_ns != stat.modified_ns:
             return False
-        os.utime(path, ns=(time.time_ns(), stat.modified_ns))
+        try:
+            os.utime(path, ns=(time.time_ns(), stat.modified_ns))
+        except FileNotFoundError:  # trimmed meanwhile
+            return False
         return True
 
     def _download(self, key: str, stat: _ObjectStat) -> Path:

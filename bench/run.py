@@ -4,10 +4,11 @@
 
 Runs the sub-benchmarks in order (poll, upload, reconstruct on the bench scene and on two
 other generated scenes, pose, scenarios, the tuning and test worlds, c2c, colmap, capture
-sizes), each as a subprocess so one failure does not lose the others; records each one's exit
-status and wall time and writes ``bench/results/summary.json`` with the headline figures
-of every result file. Before running, as root, installs the tools some comparisons need
-(wrk, colmap, cloudcompare) with apt-get; otherwise says so and records
+sizes, one worker against two), each as a subprocess so one failure does not lose the
+others; records each one's exit status and wall time and writes
+``bench/results/summary.json`` with the headline figures of every result file. Before
+running, as root, installs the tools some comparisons need (wrk, colmap, cloudcompare) with
+apt-get; otherwise says so and records
 ``"skipped: <why>"`` for exactly the comparisons that need the missing tool.
 ``--quick`` is a smoke run (fewer scenarios, views, trials and seconds) whose results go
 to ``bench/results/quick/`` so they never overwrite a full run's.
@@ -188,6 +189,11 @@ def _capture(d: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _workers(d: dict[str, Any]) -> dict[str, Any]:
+    keys = ("median_drain_wall_s", "median_jobs_per_min", "throughput_ratio_2_to_1", "runs")
+    return {**{k: d.get(k) for k in keys}, "meets_target": d.get("meets_target")}
+
+
 def _seed_args(seed: int) -> tuple[str, ...]:
     where = f"{TMP}/reconstruct_seed{seed}"
     return ("--seed", str(seed), "--scene", f"{where}/scene", "--work", f"{where}/work")
@@ -277,6 +283,15 @@ BENCHES: tuple[Bench, ...] = (
         ("--quick",),
         timeout_s=6 * 3600,
         headline=_capture,
+    ),
+    # several worker hosts (#22): the same queue on 1 worker (core 0) and 2 (cores 0 and 1)
+    Bench(
+        "workers",
+        "bench.workers_bench",
+        "workers.json",
+        (),
+        ("--quick",),
+        headline=_workers,
     ),
     # the operator console (#20): a 2 M-point snapshot opened in headless Chromium
     Bench(

@@ -35,6 +35,7 @@ import statistics
 import subprocess
 import sys
 import time
+import uuid
 from collections import defaultdict
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
@@ -203,7 +204,7 @@ def services(root: Path) -> Iterator[Services]:
     s3.start()
     host, port = s3.get_host_and_port()
     endpoint = f"http://{host}:{port}"
-    bucket = "twindelta-bench"
+    bucket = f"twindelta-bench-{uuid.uuid4().hex[:8]}"
     _s3_client(endpoint).create_bucket(Bucket=bucket)
     svc = Services(root, db_url, db_name, f"redis://127.0.0.1:{redis_port}/0", endpoint, bucket)
     try:
@@ -217,6 +218,8 @@ def services(root: Path) -> Iterator[Services]:
             svc.stop(name)
         redis.terminate()
         redis.wait(timeout=10)
+        # moto keeps buckets in this process's memory from one server to the next: drop them
+        httpx.post(f"{endpoint}/moto-api/reset", timeout=60)
         s3.stop()
         _sql(PG_ADMIN, f'DROP DATABASE IF EXISTS "{db_name}" WITH (FORCE)')
 
@@ -285,7 +288,42 @@ def fill_queue(client: httpx.Client, scenes: dict[str, Path]) -> dict[str, list[
     return snaps
 
 
-def drain(svc: Services, n_snapshots: int) -> dict[str, Any]:
+class Probe:
+    """One AUTOCOMMIT connection to the run's database for every sample, so its own
+    transactions are exactly one per query (``queries``) and its connection is known."""
+
+    def __init__(self, svc: Services) -> None:
+        from sqlalchemy import create_engine
+
+        self.svc = svc
+        self.engine = create_engine(svc.db_url, isolation_level="AUTOCOMMIT")
+        self.conn = self.engine.connect()
+        self.queries = 0
+
+    def rows(self, sql: str, **params: Any) -> list[dict[str, Any]]:
+        from sqlalchemy import text
+
+        self.queries += 1
+        return [dict(r._mapping) for r in self.conn.execute(text(sql), params)]
+
+    def connections(self) -> int:
+        """Connections to the run's database, this one's aside."""
+        sql = (
+            "SELECT count(*) AS n FROM pg_stat_activity WHERE datname = :d "
+            "AND pid <> pg_backend_pid()"
+        )
+        return int(self.rows(sql, d=self.svc.db_name)[0]["n"])
+
+    def commits(self) -> int:
+        sql = "SELECT xact_commit FROM pg_stat_database WHERE datname = :d"
+        return int(self.rows(sql, d=self.svc.db_name)[0]["xact_commit"])
+
+    def close(self) -> None:
+        self.conn.close()
+        self.engine.dispose()
+
+
+def drain(probe: Probe, n_snapshots: int) -> dict[str, Any]:
     """Sample the job rows and the database's connections until every snapshot job and
     every automatic comparison is final; returns the samples."""
     stages: dict[str, list[tuple[float, str]]] = defaultdict(list)
@@ -294,11 +332,11 @@ def drain(svc: Services, n_snapshots: int) -> dict[str, Any]:
     deadline = time.monotonic() + 3600
     while time.monotonic() < deadline:
         now = time.monotonic()
-        jobs = _sql(svc.db_url, "SELECT id, kind, state, stage FROM jobs WHERE kind <> 'object'")
+        jobs = probe.rows("SELECT id, kind, state, stage FROM jobs WHERE kind <> 'object'")
         for job in jobs:
             if job["state"] == "running":
                 stages[job["id"]].append((now, job["stage"] or "starting"))
-        connections.append(db_connections(svc))
+        connections.append(probe.connections())
         snapshot_jobs = [j for j in jobs if j["kind"] == "snapshot"]
         comparison_jobs = [j for j in jobs if j["kind"] == "comparison"]
         if (
@@ -309,19 +347,7 @@ def drain(svc: Services, n_snapshots: int) -> dict[str, Any]:
         ):
             break
         time.sleep(SAMPLE_S)
-    return {"stages": stages, "connections": connections, "queries": 2 * len(connections)}
-
-
-def db_connections(svc: Services) -> int:
-    """Connections to the run's database, this one's aside."""
-    return int(
-        _sql(
-            svc.db_url,
-            "SELECT count(*) AS n FROM pg_stat_activity WHERE datname = :d "
-            "AND pid <> pg_backend_pid()",
-            d=svc.db_name,
-        )[0]["n"]
-    )
+    return {"stages": stages, "connections": connections}
 
 
 def stage_seconds(samples: list[tuple[float, str]]) -> dict[str, float]:
@@ -355,7 +381,11 @@ def bucket_bytes(svc: Services, snaps: dict[str, list[str]]) -> dict[str, Any]:
                 }
             )
     library = sum(v for k, v in sizes.items() if "/objects/" in k)
+    folders: dict[str, int] = defaultdict(int)
+    for key, size in sizes.items():
+        folders[key.split("/")[1]] += size  # below the storage prefix
     return {
+        "by_folder": dict(folders),
         "per_snapshot_mean": {k: round(statistics.mean(p[k] for p in per)) for k in per[0]},
         "library_objects_total": library,
         "bucket_total": sum(sizes.values()),
@@ -363,7 +393,8 @@ def bucket_bytes(svc: Services, snaps: dict[str, list[str]]) -> dict[str, Any]:
 
 
 def correctness(client: httpx.Client, scenes: dict[str, Path], snaps: dict[str, list[str]]) -> Any:
-    """Per environment: the scene's true changes found by (type, object), and false ones."""
+    """Per environment: the scene's true changes found by (type, object), the false ones
+    (a type or object the truth does not have) and the clusters left unidentified."""
     from workers.demo.evaluate import match_changes
 
     out = {}
@@ -376,7 +407,8 @@ def correctness(client: httpx.Client, scenes: dict[str, Path], snaps: dict[str, 
             "state": comparison["state"],
             "true": len(matches),
             "found": sum(m.found is not None for m in matches),
-            "false": len(extra),
+            "false": sum(c["type"] != "unidentified" for c in extra),
+            "unidentified": sum(c["type"] == "unidentified" for c in extra),
         }
     return out
 
@@ -392,17 +424,17 @@ def one_run(config: str, cores: list[str], scenes: dict[str, Path], run: int) ->
         client = _client(port)
         prepare(svc, client, scenes, cores)
         snaps = fill_queue(client, scenes)
-        before = _sql(
-            svc.db_url, "SELECT xact_commit FROM pg_stat_database WHERE datname = :d", d=svc.db_name
-        )[0]["xact_commit"]
-        idle_connections = db_connections(svc)  # the API's
+        probe = Probe(svc)
+        idle_connections = probe.connections()  # the API's
+        before, counted_from = probe.commits(), probe.queries - 1  # that read commits after
         started = time.monotonic()
         names = svc.workers(cores, "run")
         ready_s = time.monotonic() - started
-        samples = drain(svc, sum(len(v) for v in snaps.values()))
-        after = _sql(
-            svc.db_url, "SELECT xact_commit FROM pg_stat_database WHERE datname = :d", d=svc.db_name
-        )[0]["xact_commit"]
+        samples = drain(probe, sum(len(v) for v in snaps.values()))
+        own = probe.queries - counted_from  # the probe's transactions in the count
+        time.sleep(11)  # PostgreSQL publishes an idle backend's counts within 10 s
+        service_commits = probe.commits() - before - own
+        probe.close()
         jobs = _sql(
             svc.db_url,
             "SELECT id, kind, state, worker, attempts, started_at, finished_at FROM jobs "
@@ -411,8 +443,8 @@ def one_run(config: str, cores: list[str], scenes: dict[str, Path], run: int) ->
         result = summarise(config, jobs, samples, len(names))
         result.update(
             workers_ready_s=round(ready_s, 1),
-            # committed transactions of the services, this bench's sampling queries aside
-            db_transactions_per_job=round((after - before - samples["queries"]) / len(jobs), 1),
+            # committed transactions of the workers and the API while the queue drained
+            db_transactions_per_job=round(service_commits / len(jobs), 1),
             db_connections_api=idle_connections,
             db_connections_per_worker_max=round(
                 (result["db_connections_max"] - idle_connections) / len(names), 1

@@ -3,22 +3,22 @@ pipeline on small generated scenes, two CPU workers each with its own private fo
 them killed mid-job, and every environment's twin still brought forward in ``seq`` order.
 
 Processes (all on loopback): a database built by the migrations, a private redis-server, an
-S3 emulator (moto's standalone server, not a real object store), the API, a maintenance host
-(the sweeper on Celery beat) and the CPU workers. Each process has its own data and scratch
-folders; no folder is shared.
+S3 emulator (moto's server in a thread of the test process: not a real object store), the
+API, a maintenance host (the sweeper on Celery beat) and the CPU workers. Each process has
+its own data and scratch folders; no folder is shared.
 
 The story, in one test (the real pipeline is too slow for one test per property):
-1. the library objects of the scenes are prepared (both workers take jobs);
+1. the library objects of the scenes are prepared;
 2. environment A's two snapshots are uploaded; once both reconstruct on different workers,
    the worker of A's first snapshot is killed (SIGKILL) mid-job. The other worker finishes
    A's second snapshot first, then the first once the sweeper has put it back in the queue:
    A's later snapshot is reconstructed before its earlier one, for real;
 3. a replacement worker host joins and environments B and C are uploaded; they run beside A.
-Then: every comparison finds its scene's change (type, object) and nothing else, the killed
-job ran exactly once to the end, A's twin took its first snapshot as baseline and the
-comparison 1 → 2 was made only after snapshot 1 was settled, jobs of different
-environments overlapped in time, and no snapshot file lies in any host's own folders
-outside its scratch cache.
+Then: every comparison finds its scene's change (type, object) and claims no other (a
+cluster it leaves unidentified is no claim), the killed job ran exactly once to the end,
+A's twin took its first snapshot as baseline and the comparison 1 → 2 was made only after
+snapshot 1 was settled, jobs of different environments overlapped in time, every worker
+took jobs, and no snapshot file lies in any host's own folders outside its scratch cache.
 """
 
 from __future__ import annotations

@@ -20,6 +20,7 @@ from workers.pipeline.reconstruct.mvs import (
     consistent_points_split,
     disparity_window,
     far_disparity_window,
+    fit_window,
     pair_depths,
     with_far_confirming_neighbours,
 )
@@ -164,6 +165,15 @@ def test_disparity_window_reaches_far_and_keeps_most_points_when_over_budget() -
         np.concatenate([rng.uniform(100, 150, 600), rng.uniform(500, 600, 400)]), 256
     )
     assert num == 256 and start <= 100 and start + num >= 150
+
+
+def test_fit_window_cuts_the_window_to_the_rectified_width() -> None:
+    """A window reaching past the grid's width (a near surface at half scale) made OpenCV's
+    SGBM ask for 2^64 bytes; it is cut in steps of 16, or dropped when nothing is left."""
+    assert fit_window((40, 128), 640, 5) == (40, 128)  # fits: unchanged
+    assert fit_window((200, 128), 320, 5) == (200, 112)  # 320 - 5 - 200 = 115 -> 112
+    assert fit_window((300, 64), 320, 5) is None  # 15 disparities left
+    assert fit_window((0, 256), 160, 5) == (0, 144)
 
 
 def test_far_disparity_window_covers_from_the_minimum_depth_to_infinity_within_budget() -> None:

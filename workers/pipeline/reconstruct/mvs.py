@@ -337,6 +337,15 @@ def far_disparity_window(focal_baseline: float, min_depth_m: float, num: int) ->
     return max(0, near - num), num
 
 
+def fit_window(window: tuple[int, int], width_px: int, block_px: int) -> tuple[int, int] | None:
+    """``window`` (minDisparity, numDisparities) cut to what a rectified grid ``width_px``
+    wide can hold (a disparity beyond the width has no match; OpenCV's SGBM fails on such a
+    window); None when fewer than 16 disparities remain."""
+    min_disp, num = window
+    room = (width_px - block_px - max(min_disp, 0)) // 16 * 16
+    return None if room < 16 else (min_disp, min(num, room))
+
+
 def _depth_from_disparity(
     disp: NDArray[np.float32],
     k_matrix: FloatArray,
@@ -602,7 +611,8 @@ def pair_depths(
     left = _rectified_view(ref, rect.r_ref, rect.p_ref, rect, near_ref, options)
     right = _rectified_view(src, rect.r_src, rect.p_src, rect, near_src, options)
     rows_used = _rows_to_match(left, right)
-    if rows_used is None:
+    window = fit_window(window, left.gray.shape[1], options.sgbm_block_size)
+    if rows_used is None or window is None:
         return empty, empty.copy()
     disp, disp_src = _sgbm_disparity(left, right, window, rows_used, far_range, options)
     return (

@@ -229,7 +229,7 @@ def plan(
         for size in ("1MP",) if quick else ("1MP", "4MP", "12MP"):
             runs.append((f"resolution_30_{size}", 30, size, sharp, {}))
     if "policy" in series:
-        for sift, dense in ((1152, 1600), (2304, 1600), (1600, 1152), (1600, 2304)):
+        for sift, dense in ((1600, 1600), (1600, 2304), (1152, 1152), (2304, 1152)):
             runs.append(
                 (
                     f"policy_12MP_sift{sift}_mvs{dense}",

@@ -42,7 +42,7 @@ class ReconstructOptions:
     # multi-view stereo
     cuda_dense: bool = False  # pycolmap CUDA PatchMatch instead of CPU SGBM (SfM mode, CUDA builds)
     mvs_scale: float = 1.0  # image scale of the depth maps; 0.5: a quarter of the pixels, coarser
-    mvs_max_image_size: int = 1600  # depth maps' long side at most (px, after mvs_scale); -1: none
+    mvs_max_image_size: int = 1152  # depth maps' long side at most (px, after mvs_scale); -1: none
     pairs_per_view: int = 1  # stereo partners per view; 2 for more complete, slower clouds
     max_disparities: int = 256  # SGBM disparity window (px); raise for deep scenes, costs time
     sgbm_block_size: int = 5  # SGBM matching block (px, odd); larger smooths, loses detail

@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import logging
 import os
 import shutil
 import signal
@@ -35,27 +34,30 @@ import statistics
 import subprocess
 import sys
 import time
-import uuid
 from collections import defaultdict
 from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import httpx
 
 from app.client import REPO_ROOT, check, free_port, poll_job, upload_capture
+from bench.loopback import (
+    TEST_CREDENTIALS,
+    create_bucket,
+    drop_bucket,
+    generate_world,
+    redis_command,
+    start_s3_server,
+)
+from bench.loopback import client as s3_client
 
 KEY = "td_bench_admin_key_0123456789abcdef"
 SECRET = "td_bench_secret_key_0123456789abcdefghijklmnop"
 PG_ADMIN = "postgresql+psycopg://postgres@127.0.0.1:5432/postgres"
-CREDENTIALS = {
-    "AWS_ACCESS_KEY_ID": "bench",
-    "AWS_SECRET_ACCESS_KEY": "bench",
-    "AWS_DEFAULT_REGION": "us-east-1",
-}
 WORLDS = [("A", "moved", 1), ("B", "removed", 2), ("C", "added", 3)]
 VIEWS, WIDTH, HEIGHT, FOCAL_PX = 16, 640, 480, 520.0
 CONFIGS = {"1 worker": ["0"], "2 workers": ["0", "1"]}
@@ -64,19 +66,10 @@ TMP = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench")) / "wor
 
 
 def _generate(args: tuple[Path, str, int]) -> Path:
-    from workers.pipeline.synth import generate, preset
-
     out, scenario, seed = args
     if (out / "ground_truth.json").exists():
         return out
-    options = preset("demo")
-    options = replace(
-        options,
-        path=replace(options.path, n_views=VIEWS),
-        camera=replace(options.camera, width=WIDTH, height=HEIGHT, focal_px=FOCAL_PX),
-    )
-    generate(out, scenario, seed, options)
-    return out
+    return generate_world(out, scenario, seed, VIEWS, (WIDTH, HEIGHT), FOCAL_PX)
 
 
 def worlds() -> dict[str, Path]:
@@ -104,7 +97,7 @@ class Services:
         folder = self.root / host
         env = {k: v for k, v in os.environ.items() if not k.startswith("TWINDELTA_")}
         env.update(
-            CREDENTIALS,
+            TEST_CREDENTIALS,
             TWINDELTA_DATA_DIR=str(folder / "data"),
             TWINDELTA_SCRATCH_DIR=str(folder / "scratch"),
             TWINDELTA_DATABASE_URL=self.db_url,
@@ -176,36 +169,16 @@ def _sql(url: str, sql: str, **params: Any) -> list[dict[str, Any]]:
 @contextmanager
 def services(root: Path) -> Iterator[Services]:
     """A fresh database, redis-server and bucket in an S3 emulator; all removed after."""
-    from moto.server import ThreadedMotoServer
-
-    logging.getLogger("werkzeug").setLevel(logging.WARNING)  # no line per request
     db_name = f"twindelta_bench_workers_{os.getpid()}"
     _sql(PG_ADMIN, f'DROP DATABASE IF EXISTS "{db_name}" WITH (FORCE)')
     _sql(PG_ADMIN, f'CREATE DATABASE "{db_name}"')
     db_url = PG_ADMIN.rsplit("/", 1)[0] + f"/{db_name}"
     redis_port = free_port()
     redis = subprocess.Popen(
-        [
-            "redis-server",
-            "--port",
-            str(redis_port),
-            "--bind",
-            "127.0.0.1",
-            "--save",
-            "",
-            "--appendonly",
-            "no",
-            "--dir",
-            str(root),
-        ],
-        stdout=subprocess.DEVNULL,
+        redis_command("redis-server", redis_port, root), stdout=subprocess.DEVNULL
     )
-    s3 = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
-    s3.start()
-    host, port = s3.get_host_and_port()
-    endpoint = f"http://{host}:{port}"
-    bucket = f"twindelta-bench-{uuid.uuid4().hex[:8]}"
-    _s3_client(endpoint).create_bucket(Bucket=bucket)
+    endpoint, stop_s3 = start_s3_server()
+    bucket = create_bucket(endpoint)
     svc = Services(root, db_url, db_name, f"redis://127.0.0.1:{redis_port}/0", endpoint, bucket)
     try:
         env = svc.env("migrate")
@@ -218,20 +191,10 @@ def services(root: Path) -> Iterator[Services]:
             svc.stop(name)
         redis.terminate()
         redis.wait(timeout=10)
-        # moto keeps buckets in this process's memory from one server to the next: drop them
-        httpx.post(f"{endpoint}/moto-api/reset", timeout=60)
-        s3.stop()
+        # moto keeps buckets in this process's memory from one server to the next: drop it
+        drop_bucket(endpoint, bucket)
+        stop_s3()
         _sql(PG_ADMIN, f'DROP DATABASE IF EXISTS "{db_name}" WITH (FORCE)')
-
-
-def _s3_client(endpoint: str) -> Any:
-    import boto3
-
-    return boto3.session.Session(
-        aws_access_key_id=CREDENTIALS["AWS_ACCESS_KEY_ID"],
-        aws_secret_access_key=CREDENTIALS["AWS_SECRET_ACCESS_KEY"],
-        region_name=CREDENTIALS["AWS_DEFAULT_REGION"],
-    ).client("s3", endpoint_url=endpoint)
 
 
 def _client(port: int) -> httpx.Client:
@@ -361,7 +324,7 @@ def stage_seconds(samples: list[tuple[float, str]]) -> dict[str, float]:
 def bucket_bytes(svc: Services, snaps: dict[str, list[str]]) -> dict[str, Any]:
     """Bytes in the bucket per snapshot: its inputs (images, labels, cameras) and what the
     workers wrote (reconstruction, comparison clusters)."""
-    s3 = _s3_client(svc.s3_endpoint)
+    s3 = s3_client(svc.s3_endpoint)
     sizes: dict[str, int] = {}
     for page in s3.get_paginator("list_objects_v2").paginate(Bucket=svc.bucket):
         for item in page.get("Contents", ()):
@@ -504,7 +467,7 @@ def storage_transfer(scenes: dict[str, Path]) -> dict[str, Any]:
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
     with services(root) as svc:
-        os.environ.update(CREDENTIALS)
+        os.environ.update(TEST_CREDENTIALS)
         settings = Settings(
             data_dir=root / "data",
             scratch_dir=root / "scratch",

@@ -27,7 +27,7 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def s3_endpoint() -> Iterator[str]:
     """The endpoint of a loopback S3 emulator (moto) shared by the session."""
-    from tests.s3_server import start_s3_server  # moto takes a second to import
+    from bench.loopback import start_s3_server  # moto takes a second to import
 
     endpoint_url, stop = start_s3_server()
     yield endpoint_url
@@ -38,7 +38,7 @@ def s3_endpoint() -> Iterator[str]:
 def s3_storage_url(s3_endpoint: str, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[str, str]]:
     """``(storage_url, endpoint_url)`` of a fresh bucket on the emulator, with the test
     credentials in this process's AWS environment (and no profile or config file)."""
-    from tests.s3_server import TEST_CREDENTIALS, create_bucket, drop_bucket
+    from bench.loopback import TEST_CREDENTIALS, create_bucket, drop_bucket
 
     for name, value in TEST_CREDENTIALS.items():
         monkeypatch.setenv(name, value)

@@ -19,6 +19,7 @@ import httpx
 import pytest
 
 from app.client import free_port
+from bench.loopback import redis_command
 from tests.app.conftest import create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
 
@@ -54,19 +55,7 @@ class RedisServer:
         if binary is None:
             pytest.fail("redis-server is not installed (the suite needs Redis: see README)")
         self.proc = subprocess.Popen(
-            [
-                binary,
-                "--port",
-                str(self.port),
-                "--bind",
-                "127.0.0.1",
-                "--save",
-                "",
-                "--appendonly",
-                "no",
-                "--dir",
-                str(self.dir),
-            ],
+            redis_command(binary, self.port, self.dir),
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
         )

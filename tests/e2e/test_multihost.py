@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from datetime import datetime
 from functools import partial
 from pathlib import Path
@@ -37,9 +37,10 @@ import pytest
 from sqlalchemy import create_engine, text
 
 from app.client import free_port, upload_capture
+from bench.loopback import generate_world
 from tests.e2e.conftest import Processes, RedisServer, api_client, poll_job, wait_until
 from workers.demo.evaluate import match_changes
-from workers.pipeline.synth import builtin_models, generate, preset
+from workers.pipeline.synth import builtin_models
 from workers.pipeline.synth.shapes import write_model_ply
 
 # 195-263 s on the shared 2-core machine (load 3-7): past the suite's 300 s default
@@ -63,14 +64,7 @@ RECONSTRUCT_S = 240  # the most one snapshot may take here, queue wait included
 
 def _generate(args: tuple[Path, str, int]) -> Path:
     out, scenario, seed = args
-    options = preset("demo")
-    options = replace(
-        options,
-        path=replace(options.path, n_views=VIEWS),
-        camera=replace(options.camera, width=WIDTH, height=HEIGHT, focal_px=FOCAL_PX),
-    )
-    generate(out, scenario, seed, options)
-    return out
+    return generate_world(out, scenario, seed, VIEWS, (WIDTH, HEIGHT), FOCAL_PX)
 
 
 @pytest.fixture

@@ -1,4 +1,4 @@
-"""The API with S3 storage (a bucket on the loopback emulator, tests/s3_server.py): a
+"""The API with S3 storage (a bucket on the loopback emulator, bench/loopback.py): a
 snapshot archive uploaded over HTTP lands in the bucket, not in the local folder; photos and
 clouds stream back byte-identical; derived files (LAZ, decimated) are published to the
 bucket; deleting its environment empties the snapshot's prefix; a resumable upload is staged
@@ -23,7 +23,7 @@ from app.core.models import Job
 from app.core.settings import get_settings
 from app.core.storage import S3Storage, open_storage
 from app.main import create_app
-from tests import s3_server
+from bench import loopback as s3_server
 from tests.app.api.test_console_api import write_ply
 from tests.app.api.test_snapshots_upload import (
     CLASSES,

@@ -1,5 +1,5 @@
 """The storage contract, run against both backends: the local folder and an S3 bucket on a
-loopback emulator (moto, tests/s3_server.py). Then what only the S3 backend does: its read
+loopback emulator (moto, bench/loopback.py). Then what only the S3 backend does: its read
 cache, its trimming, its errors."""
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from app.core import retention
 from app.core.errors import InvalidInput
 from app.core.settings import Settings
 from app.core.storage import PART_BYTES, LocalStorage, S3Storage, Storage, open_storage
-from tests import s3_server
+from bench import loopback as s3_server
 
 MiB = 1024 * 1024
 Spec = tuple[str, ...]  # how a child process opens the same storage (picklable)

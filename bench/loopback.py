@@ -1,6 +1,7 @@
-"""A loopback S3 server for tests: moto's emulator (``moto[server]``), not AWS.
+"""Loopback services for tests and benches: an S3 server (moto's emulator, ``moto[server]``,
+not AWS), a private redis-server's command line and a small generated world.
 
-:func:`start_s3_server` starts it in a thread of the calling process on a free port of
+:func:`start_s3_server` starts the S3 server in a thread of the calling process on a free port of
 127.0.0.1; processes the test starts reach it over HTTP at the returned endpoint. Clients
 need :data:`TEST_CREDENTIALS` in their environment (moto accepts any).
 """
@@ -10,6 +11,8 @@ from __future__ import annotations
 import logging
 import uuid
 from collections.abc import Callable
+from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import boto3
@@ -63,3 +66,26 @@ def drop_bucket(endpoint_url: str, bucket: str) -> None:
         batch = [{"Key": k} for k in keys[start : start + 1000]]
         s3.delete_objects(Bucket=bucket, Delete={"Objects": batch, "Quiet": True})
     s3.delete_bucket(Bucket=bucket)
+
+
+def redis_command(binary: str, port: int, folder: Path) -> list[str]:
+    """A private, non-persistent redis-server on 127.0.0.1:``port`` working in ``folder``."""
+    flags = ["--bind", "127.0.0.1", "--save", "", "--appendonly", "no"]
+    return [binary, "--port", str(port), *flags, "--dir", str(folder)]
+
+
+def generate_world(
+    out: Path, scenario: str, seed: int, views: int, size_px: tuple[int, int], focal_px: float
+) -> Path:
+    """The demo preset's world for ``scenario`` (before/, after/, ground_truth.json) with
+    ``views`` photos of ``size_px`` (width, height) per capture, written under ``out``."""
+    from workers.pipeline.synth import generate, preset
+
+    options = preset("demo")
+    options = replace(
+        options,
+        path=replace(options.path, n_views=views),
+        camera=replace(options.camera, width=size_px[0], height=size_px[1], focal_px=focal_px),
+    )
+    generate(out, scenario, seed, options)
+    return out

@@ -86,3 +86,17 @@ def test_sfm_beyond_exhaustive_matches_the_listed_pairs(tmp_path: Path) -> None:
     assert len(listed) < 10 * 9 // 2
     assert all(len(line.split()) == 2 for line in listed)
     assert len(model.views) == 10
+
+
+def test_global_mapping_past_incremental_max_images_registers_every_view(tmp_path: Path) -> None:
+    """Past ``incremental_max_images`` SfM maps globally (GLOMAP); the ring scene's views
+    all register, with the known intrinsics held fixed, and reproject as tightly."""
+    write_scene(tmp_path / "scene", n_views=10)
+    raw = json.loads((tmp_path / "scene" / "cameras.json").read_text())
+    names = list_images(tmp_path / "scene" / "images")
+    cams = parse_cameras({"intrinsics": raw["intrinsics"]})
+    options = options_from_preset(incremental_max_images=5)
+    model = run_sfm(tmp_path / "scene" / "images", tmp_path / "work", names, options, cams)
+    assert len(model.views) == 10
+    assert model.mean_reprojection_error_px < 1.0
+    assert {v.intrinsics.params for v in model.views} == {tuple(raw["intrinsics"]["params"])}

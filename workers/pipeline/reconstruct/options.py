@@ -35,6 +35,7 @@ class ReconstructOptions:
     exhaustive_max_images: int = 60  # exhaustive matching up to this many images, then pairs
     sequential_overlap: int = 12  # next images matched per image beyond exhaustive (+ 2^k ahead)
     loop_neighbours: int = 8  # beyond exhaustive: most similar images (retrieval) matched per image
+    incremental_max_images: int = 60  # incremental SfM up to this many images, then global (GLOMAP)
     min_registered_fraction: float = 0.6  # share of images SfM must register, else it fails
     # markers
     marker_subpixel: bool = True  # refine detected ArUco corners to sub-pixel accuracy

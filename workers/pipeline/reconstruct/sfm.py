@@ -139,6 +139,8 @@ def _map(
     options: ReconstructOptions,
     progress: Progress,
 ) -> pycolmap.Reconstruction:
+    if n_images > options.incremental_max_images:
+        return _map_global(database, images_dir, model_dir, fixed_intrinsics, options, progress)
     pipeline = pycolmap.IncrementalPipelineOptions()
     pipeline.random_seed = options.seed
     pipeline.num_threads = options.num_threads
@@ -160,6 +162,40 @@ def _map(
         pipeline,
         next_image_callback=on_image,
     )
+    return _keep_largest(models, model_dir)
+
+
+def _map_global(
+    database: Path,
+    images_dir: Path,
+    model_dir: Path,
+    fixed_intrinsics: bool,
+    options: ReconstructOptions,
+    progress: Progress,
+) -> pycolmap.Reconstruction:
+    """Global SfM (GLOMAP: rotation averaging, global positioning, one bundle adjustment):
+    its time grows far slower with the number of images than incremental mapping's."""
+    pipeline = pycolmap.GlobalPipelineOptions()
+    pipeline.random_seed = options.seed
+    pipeline.num_threads = options.num_threads
+    pipeline.min_model_size = 3
+    ba = pipeline.mapper.bundle_adjustment
+    ba.refine_focal_length = not fixed_intrinsics
+    ba.refine_extra_params = not fixed_intrinsics
+    ba.refine_principal_point = False
+    progress("mapping", 0.0)
+    out = model_dir.parent / "mapper_out"
+    out.mkdir(parents=True, exist_ok=True)
+    models = pycolmap.global_mapping(database, images_dir, out, pipeline)
+    progress("mapping", 1.0)
+    return _keep_largest(models, model_dir)
+
+
+def _keep_largest(
+    models: dict[int, pycolmap.Reconstruction], model_dir: Path
+) -> pycolmap.Reconstruction:
+    """The model with the most registered images, written to ``model_dir``; raises
+    ImagesDoNotOverlap when SfM made none."""
     if not models:
         raise ImagesDoNotOverlap(
             "structure from motion found no overlapping image pair to start from; take photos "
@@ -179,7 +215,8 @@ def run_sfm(
     cameras: CamerasSpec | None = None,
     progress: Progress = no_progress,
 ) -> SparseModel:
-    """Register ``image_names`` (files in ``images_dir``) by incremental SfM.
+    """Register ``image_names`` (files in ``images_dir``) by incremental SfM (global SfM past
+    ``incremental_max_images``).
 
     Returns a :class:`SparseModel` in SfM's arbitrary frame and scale. Intrinsics from
     ``cameras`` are used and held fixed when given for every image. Raises

@@ -16,6 +16,7 @@ from workers.pipeline.reconstruct.mvs import (
     _far_partners,
     _far_seed_partners,
     _overlay_far,
+    _rectify,
     consistent_points,
     consistent_points_split,
     disparity_window,
@@ -174,6 +175,24 @@ def test_fit_window_cuts_the_window_to_the_rectified_width() -> None:
     assert fit_window((200, 128), 320, 5) == (200, 112)  # 320 - 5 - 200 = 115 -> 112
     assert fit_window((300, 64), 320, 5) is None  # 15 disparities left
     assert fit_window((0, 256), 160, 5) == (0, 144)
+
+
+def test_a_window_past_the_grid_width_gives_no_depth_instead_of_an_opencv_error() -> None:
+    """A far-range pair whose window ends at 700 px on a 640 px grid (3-way SGBM, as the fast
+    preset at half scale met it): before fit_window OpenCV failed asking for 2^64 bytes."""
+    views = _views(12)
+    pts = np.random.default_rng(0).uniform([-0.4, -0.4, 0.0], [0.4, 0.4, 0.0], size=(300, 3))
+    rect = _rectify(views[0], views[1])
+    near_px = 700  # far_disparity_window's near end: f·b / far_min_depth_m
+    opts = ReconstructOptions(
+        far_min_depth_m=rect.f_px * rect.baseline_m / near_px,
+        far_max_disparities=64,
+        sgbm_mode="3way",
+    )
+    estimates = pair_depths(views[0], views[1], pts, opts, far_range=True)
+    for view, est in zip(views[:2], estimates, strict=True):
+        assert est.shape == view.image.shape[:2]
+        assert not est.any()  # 636-700 px: nothing left to search on a 640 px grid
 
 
 def test_far_disparity_window_covers_from_the_minimum_depth_to_infinity_within_budget() -> None:

@@ -122,18 +122,17 @@ def _compute(ctx: JobContext) -> Outcome:
     with transaction() as session:
         ingest.record_images(session, inputs.snapshot_id, records)
     progress("ingest", 1.0)
-    cameras_key = f"{inputs.prefix}/cameras.json"
+    try:
+        cameras_path: Path | None = ctx.storage.local_file(f"{inputs.prefix}/cameras.json")
+    except FileNotFoundError:  # an upload without cameras.json: SfM self-calibrates
+        cameras_path = None
     options = dict(inputs.options)
     preset = str(options.pop("preset", ctx.job.preset or "default"))
     result = reconstruct(
         images_dir=ctx.storage.local_dir(f"{inputs.prefix}/images"),
         work_dir=ctx.work_dir / "reconstruct",
         options=options_from_preset(preset, **options),
-        cameras=(
-            load_cameras(ctx.storage.local_file(cameras_key))
-            if ctx.storage.exists(cameras_key)
-            else None
-        ),
+        cameras=load_cameras(cameras_path) if cameras_path is not None else None,
         reference=inputs.reference,
         reference_cloud=(
             ctx.storage.local_file(inputs.previous_cloud_key) if inputs.previous_cloud_key else None

@@ -61,6 +61,26 @@ def _below(root: Path, key: str) -> Path:
     return root.joinpath(*check_key(key).parts)
 
 
+class _HashingReader(RawIOBase):
+    """``source`` read through: counts and hashes the bytes, OverflowError past ``max_bytes``."""
+
+    def __init__(self, source: BinaryIO, key: str, max_bytes: int | None) -> None:
+        self.source, self.key, self.max_bytes = source, key, max_bytes
+        self.size = 0
+        self.digest = hashlib.sha256()
+
+    def readable(self) -> bool:
+        return True
+
+    def read(self, size: int | None = -1) -> bytes:
+        chunk = self.source.read(-1 if size is None else size)
+        self.size += len(chunk)
+        if self.max_bytes is not None and self.size > self.max_bytes:
+            raise OverflowError(f"{self.key}: more than {self.max_bytes} bytes")
+        self.digest.update(chunk)
+        return chunk
+
+
 class Storage(ABC):
     """Where blobs live, plus ``scratch``: this host's private folder for files that are
     written in place (never shared between hosts). Every method raises InvalidInput for a
@@ -176,20 +196,15 @@ class LocalStorage(Storage):
         target = self.path(key)
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex}.part")
-        digest = hashlib.sha256()
-        size = 0
+        reader = _HashingReader(source, key, max_bytes)
         try:
             with tmp.open("wb") as out:
-                while chunk := source.read(CHUNK_BYTES):
-                    size += len(chunk)
-                    if max_bytes is not None and size > max_bytes:
-                        raise OverflowError(f"{key}: more than {max_bytes} bytes")
-                    digest.update(chunk)
+                while chunk := reader.read(CHUNK_BYTES):
                     out.write(chunk)
             os.replace(tmp, target)
         finally:
             tmp.unlink(missing_ok=True)
-        return StoredBlob(key=key, size_bytes=size, sha256=digest.hexdigest())
+        return StoredBlob(key=key, size_bytes=reader.size, sha256=reader.digest.hexdigest())
 
     def move_in(self, local: Path, key: str) -> None:
         """Same file system: a rename (an existing file under ``key`` is replaced)."""
@@ -210,11 +225,7 @@ class LocalStorage(Storage):
             return None
 
     def delete_prefix(self, key: str) -> None:
-        target = self.path(key)
-        if target.is_dir():
-            shutil.rmtree(target, ignore_errors=True)
-        else:
-            target.unlink(missing_ok=True)
+        _remove(self.path(key))
 
     def folders(self, prefix: str) -> dict[str, float]:
         try:
@@ -244,6 +255,14 @@ class LocalStorage(Storage):
 
     def check(self) -> None:
         self.tmp_dir().rmdir()
+
+
+def _remove(path: Path) -> None:
+    """Remove a local file or folder tree; missing is fine."""
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def _newest_mtime(folder: Path) -> float:
@@ -280,26 +299,6 @@ class _ObjectStat:
 
 def _modified_ns(when: datetime) -> int:
     return int(when.timestamp()) * 1_000_000_000
-
-
-class _HashingReader(RawIOBase):
-    """``source`` read through: counts and hashes the bytes, OverflowError past ``max_bytes``."""
-
-    def __init__(self, source: BinaryIO, key: str, max_bytes: int | None) -> None:
-        self.source, self.key, self.max_bytes = source, key, max_bytes
-        self.size = 0
-        self.digest = hashlib.sha256()
-
-    def readable(self) -> bool:
-        return True
-
-    def read(self, size: int | None = -1) -> bytes:
-        chunk = self.source.read(-1 if size is None else size)
-        self.size += len(chunk)
-        if self.max_bytes is not None and self.size > self.max_bytes:
-            raise OverflowError(f"{self.key}: more than {self.max_bytes} bytes")
-        self.digest.update(chunk)
-        return chunk
 
 
 class S3Storage(Storage):
@@ -561,11 +560,8 @@ class S3Storage(Storage):
                 raise OSError(
                     errno.EIO, f"bucket {self.bucket}: delete {first.get('Key')}: {detail}"
                 )
-        for path in (self._cache_path(key), self.scratch_path(key)):
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                path.unlink(missing_ok=True)
+        _remove(self._cache_path(key))
+        _remove(self.scratch_path(key))
 
     def folders(self, prefix: str) -> dict[str, float]:
         newest: dict[str, float] = {}

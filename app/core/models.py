@@ -475,9 +475,10 @@ class DeliveryAttempt(Base):
 
 
 class ResumableUpload(Base):
-    """One resumable (tus) upload of a capture archive. Its bytes so far are the file at
-    ``storage_key`` (the file's size is the upload's offset); once the last byte arrived the
-    archive is ingested like a single-request upload and the file goes."""
+    """One resumable (tus) upload of a capture archive. Its bytes so far are the stored
+    objects ``<storage_key>/<part>`` named by ``parts`` in order (one per PATCH), together
+    ``offset_bytes`` long; once the last byte arrived the archive is ingested like a
+    single-request upload and the parts go."""
 
     __tablename__ = "resumable_uploads"
     __table_args__ = (Index("ix_resumable_uploads_env_key", "environment_id", "idempotency_key"),)
@@ -492,6 +493,10 @@ class ResumableUpload(Base):
     idempotency_key: Mapped[str | None] = mapped_column(String(200))
     sha256: Mapped[str | None] = mapped_column(String(64))  # of the whole archive, if declared
     storage_key: Mapped[str] = mapped_column(String(500))
+    offset_bytes: Mapped[int] = mapped_column(BigInteger, default=0)  # Upload-Offset
+    parts: Mapped[list[str]] = mapped_column(JSON, default=list)  # names under storage_key
+    # while processing: when the request ingesting it last said it is alive
+    heartbeat_at: Mapped[datetime | None] = mapped_column(UtcDateTime)
     # set when the upload became a snapshot (not foreign keys: the rows outlive neither)
     snapshot_id: Mapped[str | None] = mapped_column(String(36))
     job_id: Mapped[str | None] = mapped_column(String(36))

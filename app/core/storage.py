@@ -2,7 +2,7 @@
 :class:`Storage`, and its backends, chosen by :func:`open_storage` from the settings.
 
 - :class:`LocalStorage`: files below one folder (the embedded default). Its scratch is the
-  same folder, so staging, job work folders and partial uploads live where they always did.
+  same folder, so staging and job work folders live where they always did.
 - :class:`S3Storage`: objects in an S3-compatible bucket (boto3; docs/decisions/storage.md),
   so API and worker hosts share nothing but the database, the broker and the bucket. Each
   host keeps a private scratch folder: ``<scratch>/local`` for files written in place and
@@ -12,8 +12,9 @@ Writes stream in chunks and land atomically (temporary file, then rename), so a 
 never sees half a file and a failed upload leaves nothing under its key.
 
 Code that needs a file on disk asks for :meth:`Storage.local_file` / :meth:`Storage.local_dir`
-(read-only copies) or :meth:`Storage.scratch_path` (a writable path on this host only: tus
-partial files, upload staging, job work folders), never for a path inside the store.
+(read-only copies) or :meth:`Storage.scratch_path` (a writable path on this host only: a
+tus PATCH's body as it arrives, upload staging, job work folders), never for a path inside
+the store.
 """
 
 from __future__ import annotations

@@ -1,39 +1,50 @@
 """Resumable uploads (tus 1.0: core, creation, termination, checksum, expiration) of one
 capture archive (.zip, .tar, .tar.gz), for capture stations on connections that drop.
 
-An upload is a row (:class:`~app.core.models.ResumableUpload`) and a partial file
-``uploads/<id>`` in the receiving API host's scratch (:meth:`Storage.scratch_path`; with S3
-storage several API hosts need sticky routing for /v1/uploads). **The file's size is the
-upload's offset**: a PATCH appends to it under an exclusive ``flock`` (one writer at a
-time, in any API process on the host), and bytes that arrived before a connection dropped
-stay (unless the chunk carried a checksum, which they could not match). When the last byte
-is in, the archive goes through the same ingest as a single-request archive upload
+An upload is a row (:class:`~app.core.models.ResumableUpload`: offset, length, metadata,
+owner) and its bytes as stored parts, one per PATCH: ``uploads/<id>/<start:020d>.<nonce>``
+through :class:`~app.core.storage.Storage`, so any API host can take the next PATCH (with S3
+storage the hosts share only the database and the bucket). A PATCH spools its body to this
+host's scratch, stores it as a part, then moves the row's offset in one locked transaction
+only if it still is the PATCH's start: of two PATCHes at one offset, on any hosts, the
+second gets 409 and its part is deleted. A request killed mid-body stored nothing the row
+names; bytes that arrived before a connection dropped are kept (unless the chunk carried a
+checksum, which they could not match). When the last byte is in, one request claims the
+upload (``processing``, kept alive by a heartbeat; another request answers 423 meanwhile,
+or takes over once the heartbeat is :data:`FINISH_STALE_S` old) and reads the parts in
+order as one archive through the same ingest as a single-request archive upload
 (:func:`app.core.ingest.create_snapshot`: the same checks, errors and ``Idempotency-Key``
 semantics); the snapshot and its job are recorded on the upload in the same transaction,
-and the file goes once that commits. A refused archive keeps its error on the row and loses
+and the parts go once that commits. A refused archive keeps its error on the row and loses
 its bytes.
 
 Every write moves ``expires_at`` to ``upload_expiry_s`` from now; :func:`expire` (beat's
-``maintenance.uploads``) deletes expired uploads, their files, and partial files without a
-row.
+``maintenance.uploads``) deletes expired uploads with their parts, part folders without a
+row, and spooled or half-stored parts that killed requests left.
 """
 
 from __future__ import annotations
 
 import base64
 import binascii
-import fcntl
+import bisect
 import hashlib
+import io
+import logging
 import os
 import re
+import threading
 import time
-from collections.abc import Callable
+import uuid
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timedelta
+from io import RawIOBase
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any, BinaryIO, cast
 
-from sqlalchemy import delete, select
+from sqlalchemy import delete, select, update
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import environments, ingest, retention
@@ -49,7 +60,9 @@ from app.core.errors import (
 from app.core.ingest.common import _disk_full, _no_space
 from app.core.models import ResumableUpload, new_id, utcnow
 from app.core.settings import Settings
-from app.core.storage import Storage
+from app.core.storage import CHUNK_BYTES, Storage
+
+log = logging.getLogger(__name__)
 
 TUS_VERSION = "1.0.0"
 TUS_EXTENSIONS = "creation,termination,checksum,expiration"
@@ -62,6 +75,8 @@ CHECKSUMS: dict[str, Callable[[], Any]] = {
 }
 ARCHIVE_SUFFIXES = (".zip", ".tar", ".tar.gz", ".tgz")
 FOLDER = "uploads"
+FINISH_BEAT_S = 5.0  # a request ingesting an upload writes its heartbeat this often
+FINISH_STALE_S = 30.0  # another request may take over once the heartbeat is this old
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 
 
@@ -73,8 +88,7 @@ class BadRequest(DomainError):
 
 
 class UploadLocked(DomainError):
-    """423: another request is writing this upload (a PATCH whose connection dropped is
-    still saving); retry after a short wait."""
+    """423: another request is ingesting this upload's archive; retry after a short wait."""
 
     status_code = 423
     code = "UploadLocked"
@@ -195,15 +209,13 @@ def _check_new(new: NewUpload, settings: Settings) -> None:
         raise InvalidInput("sha256: 64 hexadecimal digits", code="InvalidUploadMetadata")
 
 
-def create(
-    session: Session, storage: Storage, settings: Settings, new: NewUpload
-) -> tuple[ResumableUpload, bool]:
-    """A new upload with an empty partial file, or the unexpired upload that already has
-    this ``idempotency_key``, ``sha256`` and length (so a client that lost its upload URL
-    resumes instead of sending everything again); returns (upload, created).
+def create(session: Session, settings: Settings, new: NewUpload) -> tuple[ResumableUpload, bool]:
+    """A new upload with no bytes yet, or the unexpired upload that already has this
+    ``idempotency_key``, ``sha256`` and length (so a client that lost its upload URL resumes
+    instead of sending everything again); returns (upload, created).
 
     404 for an unknown environment; 413 beyond ``max_upload_bytes``; 415 for a name that is
-    not an archive; 507 when the partial file cannot be made."""
+    not an archive."""
     environments.get(session, new.environment_id)
     _check_new(new, settings)
     if new.idempotency_key is not None and new.sha256 is not None:
@@ -219,10 +231,7 @@ def create(
             )
             .order_by(ResumableUpload.created_at.desc())
         ).first()
-        if earlier is not None and (
-            earlier.state != UploadState.receiving
-            or storage.scratch_path(earlier.storage_key).exists()
-        ):
+        if earlier is not None:
             return earlier, False
     upload_id = new_id()
     upload = ResumableUpload(
@@ -234,16 +243,10 @@ def create(
         idempotency_key=new.idempotency_key,
         sha256=new.sha256,
         storage_key=f"{FOLDER}/{upload_id}",
+        offset_bytes=0,
+        parts=[],
         expires_at=utcnow() + timedelta(seconds=settings.upload_expiry_s),
     )
-    path = storage.scratch_path(upload.storage_key)
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.touch(exist_ok=False)
-    except OSError as exc:
-        if _disk_full(exc):
-            raise _no_space("upload") from exc
-        raise
     session.add(upload)
     session.flush()
     return upload, True
@@ -260,75 +263,72 @@ def get(session: Session, upload_id: str, now: datetime | None = None) -> Resuma
     return upload
 
 
-def offset(storage: Storage, upload: ResumableUpload) -> int:
-    """Bytes received: the partial file's size while receiving, the length afterwards;
-    404 when a receiving upload's file is gone."""
-    if upload.state != UploadState.receiving:
-        return upload.length
-    try:
-        return storage.scratch_path(upload.storage_key).stat().st_size
-    except FileNotFoundError:
-        raise NotFound(f"upload {upload.id}: its bytes are gone", code="UploadExpired") from None
+def offset(upload: ResumableUpload) -> int:
+    """Bytes received: the stored parts' total while receiving, the length afterwards."""
+    return upload.offset_bytes if upload.state == UploadState.receiving else upload.length
 
 
-def touch(session: Session, upload_id: str, settings: Settings) -> datetime:
-    """Move the upload's expiry to ``upload_expiry_s`` from now; returns it."""
-    expires_at = utcnow() + timedelta(seconds=settings.upload_expiry_s)
-    upload = session.get(ResumableUpload, upload_id, with_for_update=True)
-    if upload is not None:
-        upload.expires_at = expires_at
-    return expires_at
+def check_offset(upload: ResumableUpload, start: int) -> None:
+    """409 ``OffsetMismatch`` unless a PATCH's Upload-Offset ``start`` is the upload's."""
+    if start != offset(upload):
+        raise Conflict(
+            f"Upload-Offset {start} is not the upload's offset {offset(upload)}: HEAD it and "
+            "resume from there",
+            code="OffsetMismatch",
+        )
+
+
+def _alive(upload: ResumableUpload, now: datetime) -> bool:
+    """Whether a ``processing`` upload's finishing request beat within FINISH_STALE_S."""
+    return (
+        upload.state == UploadState.processing
+        and upload.heartbeat_at is not None
+        and upload.heartbeat_at > now - timedelta(seconds=FINISH_STALE_S)
+    )
+
+
+def _being_ingested(upload_id: str) -> UploadLocked:
+    return UploadLocked(f"upload {upload_id}: its archive is being ingested; retry in a moment")
 
 
 # --- writing --------------------------------------------------------------------------------
 
 
-def _lock(path: Path, upload_id: str) -> int:
-    """An open descriptor of ``path`` holding its exclusive lock; 404 when the file is gone,
-    423 ``UploadLocked`` while another request holds it."""
-    try:
-        fd = os.open(path, os.O_RDWR)
-    except FileNotFoundError:
-        raise NotFound(f"upload {upload_id}: its bytes are gone", code="UploadExpired") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        os.close(fd)
-        raise UploadLocked(
-            f"upload {upload_id}: another request is writing it; retry in a moment"
-        ) from None
-    return fd
-
-
 class Receiver:
-    """One PATCH's bytes appended to an upload's partial file, holding its lock from
-    :meth:`open` to :meth:`close`.
+    """One PATCH's bytes: spooled to ``<storage_key>/.<part>.part`` in this host's scratch
+    between :meth:`open` and :meth:`close`, then stored as the upload's next part
+    (:meth:`store`).
 
-    ``start`` is the request's Upload-Offset (409 ``OffsetMismatch`` unless it is the file's
-    size), ``limit`` the most bytes the chunk may carry (413 past it), ``checksum`` the
-    chunk's Upload-Checksum (460 and the chunk discarded when it does not match)."""
+    ``start`` is the request's Upload-Offset, the most the chunk may carry is what is left
+    of Upload-Length from there (413 past it), ``checksum`` the chunk's Upload-Checksum (460
+    and the chunk discarded when it does not match)."""
 
     def __init__(
-        self, path: Path, upload_id: str, start: int, limit: int, checksum: tuple[str, bytes] | None
+        self,
+        storage: Storage,
+        upload: ResumableUpload,
+        start: int,
+        checksum: tuple[str, bytes] | None,
     ) -> None:
-        self.path, self.upload_id, self.start, self.limit = path, upload_id, start, limit
+        self.storage, self.upload_id, self.start = storage, upload.id, start
+        self.limit = max(upload.length - start, 0)
+        self.name = f"{start:020d}.{uuid.uuid4().hex[:16]}"
+        self.key = f"{upload.storage_key}/{self.name}"
+        self.path = storage.scratch_path(f"{upload.storage_key}/.{self.name}.part")
         self.checksum = checksum
         self.hasher = CHECKSUMS[checksum[0]]() if checksum else None
         self.written = 0
         self._fh: BinaryIO | None = None
 
     def open(self) -> None:
-        fd = _lock(self.path, self.upload_id)
-        size = os.fstat(fd).st_size
-        if size != self.start:
-            os.close(fd)
-            raise Conflict(
-                f"Upload-Offset {self.start} is not the upload's offset {size}: HEAD it and "
-                "resume from there",
-                code="OffsetMismatch",
-            )
-        self._fh = os.fdopen(fd, "r+b")
-        self._fh.seek(self.start)
+        """Create the spool file; 507 on a full disk."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._fh = self.path.open("wb")
+        except OSError as exc:
+            if _disk_full(exc):
+                raise _no_space(f"upload {self.upload_id}") from exc
+            raise
 
     @property
     def fh(self) -> BinaryIO:
@@ -337,7 +337,7 @@ class Receiver:
         return self._fh
 
     def write(self, data: bytes | bytearray) -> None:
-        """Append ``data``; 413 past ``limit``, 507 on a full disk (either discards the chunk)."""
+        """Append ``data``; 413 past the limit, 507 on a full disk (either discards the chunk)."""
         if self.written + len(data) > self.limit:
             self.rollback()
             raise PayloadTooLarge(
@@ -357,8 +357,7 @@ class Receiver:
 
     def commit(self) -> int:
         """Keep what was written (460 and nothing kept when the checksum does not match);
-        returns the new offset."""
-        self.fh.flush()
+        returns the bytes kept."""
         if (
             self.checksum is not None
             and self.hasher is not None
@@ -369,31 +368,191 @@ class Receiver:
                 f"upload {self.upload_id}: the chunk's {self.checksum[0]} does not match "
                 "Upload-Checksum; it was discarded, send it again"
             )
-        return self.start + self.written
+        return self.written
 
     def keep_partial(self) -> int:
         """After a dropped connection: keep the bytes that arrived, unless the chunk has a
-        checksum (they cannot be verified); returns the offset."""
+        checksum (they cannot be verified); returns the bytes kept."""
         if self.checksum is not None:
             self.rollback()
-            return self.start
-        self.fh.flush()
-        return self.start + self.written
+        return self.written
 
     def rollback(self) -> None:
-        """Discard this chunk: the file back to ``start`` bytes."""
-        self.fh.flush()
-        self.fh.truncate(self.start)
+        """Discard this chunk."""
+        self.fh.seek(0)
+        self.fh.truncate()
         self.written = 0
 
-    def close(self) -> None:
-        """Release the lock."""
+    def store(self, factory: sessionmaker[Session], settings: Settings) -> ResumableUpload:
+        """Store the bytes kept as the upload's next part, and move its offset past them
+        and its expiry to ``upload_expiry_s`` from now in one transaction with the row
+        locked; returns the row. Nothing kept: only the expiry moves.
+
+        409 ``OffsetMismatch`` when another request moved the offset first (or ended the
+        upload), 404 when the upload is gone: either way the part is deleted. 507 when the
+        storage is full."""
+        self._close_file()
+        expires_at = utcnow() + timedelta(seconds=settings.upload_expiry_s)
+        if self.written:
+            try:
+                self.storage.move_in(self.path, self.key)
+            except OSError as exc:
+                if _disk_full(exc):
+                    raise _no_space(f"upload {self.upload_id}") from exc
+                raise
+        try:
+            with factory.begin() as session:
+                row = session.get(ResumableUpload, self.upload_id, with_for_update=True)
+                if row is None or row.expires_at <= utcnow():
+                    raise NotFound(f"upload {self.upload_id} is gone", code="UploadExpired")
+                if self.written:
+                    check_offset(row, self.start)
+                    row.parts = [*row.parts, self.name]
+                    row.offset_bytes = self.start + self.written
+                row.expires_at = expires_at
+        except BaseException:
+            if self.written:
+                self._delete_part()
+            raise
+        return row
+
+    def _delete_part(self) -> None:
+        try:
+            self.storage.delete_prefix(self.key)
+        except OSError:  # left under the upload's prefix: deleted with the upload
+            log.exception("could not delete the refused part %s", self.key)
+
+    def _close_file(self) -> None:
         if self._fh is not None:
             self._fh.close()
             self._fh = None
 
+    def close(self) -> None:
+        """Close and remove the spool file (once stored it is gone already)."""
+        self._close_file()
+        self.path.unlink(missing_ok=True)
+
 
 # --- the end of an upload -------------------------------------------------------------------
+
+
+class _Joined(RawIOBase):
+    """Files read one after another as one seekable stream (an upload's parts in order)."""
+
+    def __init__(self, paths: list[Path]) -> None:
+        self.paths = paths
+        self.starts = [0]
+        for path in paths:
+            self.starts.append(self.starts[-1] + path.stat().st_size)
+        self.pos = 0
+        self._index = -1
+        self._fh: BinaryIO | None = None
+
+    @property
+    def size(self) -> int:
+        return self.starts[-1]
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self.pos, os.SEEK_END: self.size}[whence]
+        if base + offset < 0:
+            raise ValueError(f"negative seek position {base + offset}")
+        self.pos = base + offset
+        return self.pos
+
+    def readinto(self, buffer: Any) -> int:
+        if self.pos >= self.size:
+            return 0
+        index = bisect.bisect_right(self.starts, self.pos) - 1
+        if index != self._index:
+            if self._fh is not None:
+                self._fh.close()
+            self._fh, self._index = self.paths[index].open("rb"), index
+        fh = cast(BinaryIO, self._fh)
+        fh.seek(self.pos - self.starts[index])
+        view = memoryview(buffer)[: self.starts[index + 1] - self.pos]
+        n = fh.readinto(view)  # type: ignore[attr-defined]
+        self.pos += n
+        return int(n)
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+        super().close()
+
+
+@contextmanager
+def _archive(storage: Storage, upload: ResumableUpload) -> Iterator[BinaryIO]:
+    """The upload's parts in order as one seekable file (local copies on this host: the
+    parts themselves with the local folder, downloaded into the read cache with S3). 404
+    ``UploadExpired`` when they are not all there."""
+    gone = NotFound(f"upload {upload.id}: its bytes are gone", code="UploadExpired")
+    try:
+        folder = storage.local_dir(upload.storage_key)
+        joined = _Joined([folder / name for name in upload.parts])
+    except FileNotFoundError as exc:
+        raise gone from exc
+    if joined.size != upload.length:
+        joined.close()
+        raise gone
+    with io.BufferedReader(joined, buffer_size=CHUNK_BYTES) as fh:
+        yield cast(BinaryIO, fh)
+
+
+@contextmanager
+def _heartbeat(factory: sessionmaker[Session], upload_id: str) -> Iterator[None]:
+    """While the block runs, a thread writes the upload's ``heartbeat_at`` every
+    :data:`FINISH_BEAT_S` (as long as it is ``processing``)."""
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(FINISH_BEAT_S):
+            try:
+                with factory.begin() as session:
+                    session.execute(
+                        update(ResumableUpload)
+                        .where(
+                            ResumableUpload.id == upload_id,
+                            ResumableUpload.state == UploadState.processing,
+                        )
+                        .values(heartbeat_at=utcnow())
+                    )
+            except Exception:  # the next beat tries again
+                log.exception("upload %s: could not write its heartbeat", upload_id)
+
+    thread = threading.Thread(target=beat, name=f"upload-{upload_id}-heartbeat", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
+
+def _claim(factory: sessionmaker[Session], upload_id: str) -> ResumableUpload:
+    """Mark a complete upload ``processing`` for this request; an upload that already ended
+    is returned as it is. 423 while another request ingests it (its heartbeat is fresh)."""
+    with factory.begin() as session:
+        upload = session.get(ResumableUpload, upload_id, with_for_update=True)
+        if upload is None:
+            raise NotFound(f"upload {upload_id} not found")
+        if upload.state in (UploadState.completed, UploadState.failed):
+            return upload
+        now = utcnow()
+        if _alive(upload, now):
+            raise _being_ingested(upload_id)
+        check_offset(upload, upload.length)
+        upload.state, upload.heartbeat_at = UploadState.processing, now
+        return upload
 
 
 def finish(
@@ -405,37 +564,34 @@ def finish(
 ) -> ResumableUpload:
     """Ingest a complete upload's archive as a snapshot (:func:`ingest.create_snapshot`,
     ``lookup`` for its reads) and record the snapshot and job on the upload, in one
-    transaction; the file goes after commit. The caller holds the file's lock.
+    transaction; the parts go after commit. 423 while another request does it.
 
     A refused archive (a DomainError: the single upload's 4xx) is recorded on the upload,
-    its file removed, and re-raised; an unexpected error puts the upload back to
+    its parts removed, and re-raised; an unexpected error puts the upload back to
     ``receiving``, so a PATCH at its full offset runs this again."""
-    with factory.begin() as session:
-        upload = session.get(ResumableUpload, upload_id, with_for_update=True)
-        if upload is None:
-            raise NotFound(f"upload {upload_id} not found")
-        if upload.state in (UploadState.completed, UploadState.failed):
-            return upload
-        upload.state = UploadState.processing
+    upload = _claim(factory, upload_id)
+    if upload.state != UploadState.processing:
+        return upload
     try:
-        archive = storage.scratch_path(upload.storage_key)
-        _check_sha256(archive, upload)
-        with factory.begin() as session, archive.open("rb") as fh:
-            result = ingest.create_snapshot(
-                session,
-                storage,
-                settings,
-                upload.environment_id,
-                ingest.UploadFiles(archive=ingest.UploadPart(upload.filename, fh)),
-                idempotency_key=upload.idempotency_key,
-                lookup=lookup,
-            )
-            row = session.get(ResumableUpload, upload_id, with_for_update=True)
-            if row is None:
-                raise NotFound(f"upload {upload_id} was deleted while it was ingested")
-            row.state, row.completed_at = UploadState.completed, utcnow()
-            row.snapshot_id, row.job_id = result.snapshot.id, result.job.id
-            retention.delete_after_commit(session, storage, row.storage_key)
+        with _heartbeat(factory, upload_id), _archive(storage, upload) as archive:
+            _check_sha256(archive, upload)
+            archive.seek(0)
+            with factory.begin() as session:
+                result = ingest.create_snapshot(
+                    session,
+                    storage,
+                    settings,
+                    upload.environment_id,
+                    ingest.UploadFiles(archive=ingest.UploadPart(upload.filename, archive)),
+                    idempotency_key=upload.idempotency_key,
+                    lookup=lookup,
+                )
+                row = session.get(ResumableUpload, upload_id, with_for_update=True)
+                if row is None:
+                    raise NotFound(f"upload {upload_id} was deleted while it was ingested")
+                row.state, row.completed_at = UploadState.completed, utcnow()
+                row.snapshot_id, row.job_id = result.snapshot.id, result.job.id
+                retention.delete_after_commit(session, storage, row.storage_key)
         return row
     except DomainError as exc:
         if exc.status_code >= 500:  # a full disk: not the archive's fault, keep its bytes
@@ -458,17 +614,16 @@ def _back_to_receiving(factory: sessionmaker[Session], upload_id: str) -> None:
     with factory.begin() as session:
         row = session.get(ResumableUpload, upload_id, with_for_update=True)
         if row is not None and row.state == UploadState.processing:
-            row.state = UploadState.receiving
+            row.state, row.heartbeat_at = UploadState.receiving, None
 
 
-def _check_sha256(path: Path, upload: ResumableUpload) -> None:
+def _check_sha256(archive: BinaryIO, upload: ResumableUpload) -> None:
     """422 ``ArchiveChecksumMismatch`` when the archive's SHA-256 is not the declared one."""
     if upload.sha256 is None:
         return
     digest = hashlib.sha256()
-    with path.open("rb") as fh:
-        while chunk := fh.read(4 * 1024 * 1024):
-            digest.update(chunk)
+    while chunk := archive.read(CHUNK_BYTES):
+        digest.update(chunk)
     if digest.hexdigest() != upload.sha256:
         raise InvalidInput(
             f"{upload.filename}: the uploaded bytes' SHA-256 is {digest.hexdigest()}, not the "
@@ -478,32 +633,25 @@ def _check_sha256(path: Path, upload: ResumableUpload) -> None:
 
 
 def terminate(session: Session, storage: Storage, upload: ResumableUpload) -> None:
-    """Delete the upload and its bytes (after commit); 423 while a request writes it or its
-    archive is being ingested. A snapshot it made stays."""
-    path = storage.scratch_path(upload.storage_key)
-    if path.exists():
-        os.close(_lock(path, upload.id))  # only to learn that nobody holds it
-    session.delete(upload)
+    """Delete the upload and its parts (after commit); 423 while its archive is being
+    ingested. A snapshot it made stays."""
+    row = session.get(ResumableUpload, upload.id, with_for_update=True)
+    if row is None:
+        raise NotFound(f"upload {upload.id} not found")
+    if _alive(row, utcnow()):
+        raise _being_ingested(upload.id)
+    session.delete(row)
     session.flush()
-    retention.delete_after_commit(session, storage, upload.storage_key)
-
-
-def _locked(path: Path) -> bool:
-    try:
-        os.close(_lock(path, ""))
-    except UploadLocked:
-        return True
-    except NotFound:
-        return False
-    return False
+    retention.delete_after_commit(session, storage, row.storage_key)
 
 
 def expire(
     session: Session, storage: Storage, orphan_age_s: float, now: datetime | None = None
 ) -> dict[str, int]:
-    """Delete uploads past ``expires_at`` (rows now, files after commit; one a request is
-    writing waits for the next run) and partial files with no row once ``orphan_age_s``
-    old. Returns counts by kind."""
+    """Delete uploads past ``expires_at`` (rows now, parts after commit; one being ingested
+    waits for the next run), part folders with no row once ``orphan_age_s`` old, and parts
+    that killed requests left half-written for that long (spooled in this host's scratch,
+    or unfinished multipart uploads in S3). Returns counts by kind."""
     now = now or utcnow()
     counts = {"uploads_expired": 0, "uploads_orphaned": 0}
     expired = session.scalars(
@@ -511,15 +659,16 @@ def expire(
     ).all()
     gone: list[str] = []
     for upload in expired:
-        if _locked(storage.scratch_path(upload.storage_key)):
+        if _alive(upload, now):
             continue
         gone.append(upload.id)
         retention.delete_after_commit(session, storage, upload.storage_key)
     if gone:
         session.execute(delete(ResumableUpload).where(ResumableUpload.id.in_(gone)))
         counts["uploads_expired"] = len(gone)
-    folder = storage.scratch_path(FOLDER)
-    names = [p.name for p in folder.iterdir() if p.is_file()] if folder.is_dir() else []
+    cutoff = now.timestamp() - orphan_age_s
+    folders = storage.folders(FOLDER)
+    names = list(folders)
     known = {
         upload_id
         for start in range(0, len(names), 500)
@@ -527,16 +676,11 @@ def expire(
             select(ResumableUpload.id).where(ResumableUpload.id.in_(names[start : start + 500]))
         )
     }
-    cutoff = now.timestamp() - orphan_age_s
-    for name in names:
-        path = folder / name
-        try:
-            old = path.stat().st_mtime < cutoff
-        except FileNotFoundError:
-            continue
-        if name not in known and old and not _locked(path):
-            path.unlink(missing_ok=True)
+    for name, newest in folders.items():
+        if name not in known and name not in gone and newest < cutoff:
+            storage.delete_prefix(f"{FOLDER}/{name}")
             counts["uploads_orphaned"] += 1
+    counts["uploads_orphaned"] += storage.remove_partial(FOLDER, cutoff)
     return counts
 
 

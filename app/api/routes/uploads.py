@@ -22,14 +22,13 @@ from app.core import auth, uploads
 from app.core.auth import Principal
 from app.core.db import get_read_session_factory, get_session_factory
 from app.core.enums import UploadState
-from app.core.errors import Conflict, DomainError, NotFound, PayloadTooLarge, UnsupportedMedia
+from app.core.errors import Conflict, DomainError, PayloadTooLarge, UnsupportedMedia
 from app.core.models import ResumableUpload
-from app.core.settings import Settings
 
 router = APIRouter(tags=["uploads"], responses=ERRORS)
 
 OFFSET_CONTENT_TYPE = "application/offset+octet-stream"
-# Bytes gathered from the request body before one write to the partial file.
+# Bytes gathered from the request body before one write to the spool file.
 WRITE_BYTES = 1024 * 1024
 
 _TUS = {"Tus-Resumable": {"schema": {"type": "string", "enum": [uploads.TUS_VERSION]}}}
@@ -162,13 +161,11 @@ def upload_options(settings: SettingsDep, key: CaptureKey) -> Response:
         400: {"model": ErrorOut, "description": "Upload-Length or Upload-Metadata malformed"},
         413: {"model": ErrorOut, "description": "Upload-Length over max_upload_bytes"},
         415: {"model": ErrorOut, "description": "filename is not .zip, .tar or .tar.gz"},
-        507: {"model": ErrorOut, "description": "storage full"},
         **_VERSION,
     },
 )
 def create_upload(
     session: SessionDep,
-    storage: StorageDep,
     settings: SettingsDep,
     key: CaptureKey,
     tus_resumable: TusVersion,
@@ -187,11 +184,11 @@ def create_upload(
     """tus creation: a new upload of one capture archive (201 + Location)."""
     new = uploads.NewUpload.from_headers(upload_length, upload_metadata)
     auth.require_environment(key, new.environment_id)
-    upload, created = uploads.create(session, storage, settings, new)
+    upload, created = uploads.create(session, settings, new)
     response = Response(status_code=status.HTTP_201_CREATED)
     point_to(response, f"/v1/uploads/{upload.id}", replayed=not created)
     response.headers["Upload-Expires"] = uploads.expires_header(upload.expires_at)
-    response.headers["Upload-Offset"] = str(uploads.offset(storage, upload))
+    response.headers["Upload-Offset"] = str(uploads.offset(upload))
     if not created:
         _result_headers(upload, response)
     return response
@@ -218,9 +215,7 @@ def create_upload(
         **_VERSION,
     },
 )
-def head_upload(
-    upload_id: str, session: SessionDep, storage: StorageDep, key: CaptureKey, tus: TusVersion
-) -> Response:
+def head_upload(upload_id: str, session: SessionDep, key: CaptureKey, tus: TusVersion) -> Response:
     """tus offset: Upload-Offset and Upload-Length (a refused archive answers its error's
     status, with Twindelta-Error naming it)."""
     upload = _reachable(session, key, upload_id)
@@ -229,19 +224,17 @@ def head_upload(
         headers["Twindelta-Error"] = upload.error_code or "InvalidUpload"
         return Response(status_code=upload.error_status, headers=headers)
     response = Response(status_code=status.HTTP_200_OK, headers=headers)
-    response.headers["Upload-Offset"] = str(uploads.offset(storage, upload))
+    response.headers["Upload-Offset"] = str(uploads.offset(upload))
     response.headers["Upload-Expires"] = uploads.expires_header(upload.expires_at)
     _result_headers(upload, response)
     return response
 
 
 @router.get("/uploads/{upload_id}")
-def get_upload(
-    upload_id: str, session: SessionDep, storage: StorageDep, key: CaptureKey
-) -> UploadRead:
+def get_upload(upload_id: str, session: SessionDep, key: CaptureKey) -> UploadRead:
     """The upload: offset, state, and the snapshot and job it became (or why it was refused)."""
     upload = _reachable(session, key, upload_id)
-    return UploadRead.of(upload, uploads.offset(storage, upload))
+    return UploadRead.of(upload, uploads.offset(upload))
 
 
 @router.delete(
@@ -250,7 +243,7 @@ def get_upload(
     response_class=Response,
     responses={
         204: {"description": "deleted with its bytes", "headers": _TUS},
-        423: {"model": ErrorOut, "description": "a request is writing it; retry"},
+        423: {"model": ErrorOut, "description": "its archive is being ingested; retry"},
         **_VERSION,
     },
 )
@@ -266,11 +259,6 @@ def delete_upload(
 def _load(key: Principal, upload_id: str) -> ResumableUpload:
     with get_read_session_factory()() as session:
         return _reachable(session, key, upload_id)
-
-
-def _touch(upload_id: str, settings: Settings) -> str:
-    with get_session_factory().begin() as session:
-        return uploads.expires_header(uploads.touch(session, upload_id, settings))
 
 
 def _stored_error(upload: ResumableUpload) -> DomainError:
@@ -308,10 +296,10 @@ def chunk_headers(
     )
 
 
-async def _receive(request: Request, receiver: uploads.Receiver) -> int | None:
+async def _receive(request: Request, receiver: uploads.Receiver) -> bool:
     """Stream the request body into ``receiver`` in writes of :data:`WRITE_BYTES`; returns
-    the new offset, or None when the client went away (what arrived is kept unless the
-    chunk had a checksum). Any error discards the chunk."""
+    whether the client went away (what arrived is kept unless the chunk had a checksum).
+    Any error discards the chunk."""
     buffer = bytearray()
     try:
         async for chunk in request.stream():
@@ -325,11 +313,12 @@ async def _receive(request: Request, receiver: uploads.Receiver) -> int | None:
         if buffer:
             await run_in_threadpool(receiver.write, buffer)
         await run_in_threadpool(receiver.keep_partial)
-        return None
+        return True
     except BaseException:
         await run_in_threadpool(receiver.rollback)
         raise
-    return await run_in_threadpool(receiver.commit)
+    await run_in_threadpool(receiver.commit)
+    return False
 
 
 @router.patch(
@@ -361,7 +350,7 @@ async def _receive(request: Request, receiver: uploads.Receiver) -> int | None:
         ),
         413: {"model": ErrorOut, "description": "over Upload-Length or the chunk limit"},
         415: {"model": ErrorOut, "description": "Content-Type is not offset+octet-stream"},
-        423: {"model": ErrorOut, "description": "another request is writing it; retry"},
+        423: {"model": ErrorOut, "description": "its archive is being ingested; retry"},
         460: {"model": ErrorOut, "description": "Upload-Checksum mismatch: chunk discarded"},
         507: {"model": ErrorOut, "description": "storage full"},
         **_VERSION,
@@ -380,38 +369,36 @@ async def patch_upload(
     upload = await run_in_threadpool(_load, key, upload_id)
     if upload.state in (UploadState.completed, UploadState.failed):
         return _ended(upload, start)
+    uploads.check_offset(upload, start)
     remaining = max(upload.length - start, 0)
     declared = request.headers.get("content-length")
-    receiver = uploads.Receiver(
-        storage.scratch_path(upload.storage_key), upload.id, start, remaining, checksum
-    )
-    try:
-        await run_in_threadpool(receiver.open)
-    except NotFound:  # another request may have just ended it (and removed its bytes)
-        upload = await run_in_threadpool(_load, key, upload_id)
-        if upload.state in (UploadState.completed, UploadState.failed):
-            return _ended(upload, start)
-        raise
-    try:
-        if declared is not None and declared.isdigit() and int(declared) > remaining:
-            raise PayloadTooLarge(
-                f"Content-Length {declared} runs past Upload-Length ({remaining} bytes left)"
-            )
-        reached = await _receive(request, receiver)
-        expires = await run_in_threadpool(_touch, upload_id, settings)
-        if reached is None or reached < upload.length:  # None: nobody reads this answer
-            headers = {"Upload-Offset": str(reached or start), "Upload-Expires": expires}
-            return Response(status_code=status.HTTP_204_NO_CONTENT, headers=headers)
-        done = await run_in_threadpool(
-            uploads.finish,
-            get_session_factory(),
-            get_read_session_factory(),
-            storage,
-            settings,
-            upload_id,
+    if declared is not None and declared.isdigit() and int(declared) > remaining:
+        raise PayloadTooLarge(
+            f"Content-Length {declared} runs past Upload-Length ({remaining} bytes left)"
         )
+    receiver = uploads.Receiver(storage, upload, start, checksum)
+    await run_in_threadpool(receiver.open)
+    try:
+        dropped = await _receive(request, receiver)
+        upload = await run_in_threadpool(receiver.store, get_session_factory(), settings)
     finally:
         await run_in_threadpool(receiver.close)
+    if upload.state in (UploadState.completed, UploadState.failed):
+        return _ended(upload, start)
+    if dropped or upload.offset_bytes < upload.length:  # dropped: nobody reads this answer
+        headers = {
+            "Upload-Offset": str(upload.offset_bytes),
+            "Upload-Expires": uploads.expires_header(upload.expires_at),
+        }
+        return Response(status_code=status.HTTP_204_NO_CONTENT, headers=headers)
+    done = await run_in_threadpool(
+        uploads.finish,
+        get_session_factory(),
+        get_read_session_factory(),
+        storage,
+        settings,
+        upload_id,
+    )
     if done.state == UploadState.failed:
         raise _stored_error(done)
     return _final(done)

@@ -1,14 +1,16 @@
 """The API with S3 storage (a bucket on the loopback emulator, bench/loopback.py): a
 snapshot archive uploaded over HTTP lands in the bucket, not in the local folder; photos and
 clouds stream back byte-identical; derived files (LAZ, decimated) are published to the
-bucket; deleting its environment empties the snapshot's prefix; a resumable upload is staged
-in this host's scratch; jobs run with another scratch (another host) read and publish
-through the bucket; /readyz probes the bucket."""
+bucket; deleting its environment empties the snapshot's prefix; a resumable upload is stored
+in parts in the bucket, so three API hosts (own scratch each) can take its requests in turn,
+and two PATCHes at one offset on two hosts cannot both count; jobs run with another scratch
+(another host) read and publish through the bucket; /readyz probes the bucket."""
 
 from __future__ import annotations
 
 import hashlib
 from collections.abc import Iterator
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +21,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import ingest, snapshots
 from app.core.enums import JobState, SnapshotState
+from app.core.errors import Conflict
 from app.core.models import Job
 from app.core.settings import get_settings
 from app.core.storage import S3Storage, open_storage
@@ -35,9 +38,11 @@ from tests.app.api.test_snapshots_upload import (
     zip_bytes,
 )
 from tests.app.api.test_uploads_api import create as create_upload
+from tests.app.api.test_uploads_api import new_upload
 from tests.app.api.test_uploads_api import patch as patch_upload
 from tests.app.conftest import Keys, SentTasks
 from tests.app.core import test_twin_order as twin_order
+from tests.app.core.test_uploads import spooled
 from tests.workers import fake_pipeline
 from workers import snapshot as snapshot_glue
 
@@ -153,7 +158,7 @@ def test_a_snapshot_lives_in_the_bucket_and_streams_back(
     assert not (data_dir / "scratch" / "cache" / "snapshots" / snap_id).exists()
 
 
-def test_a_resumable_upload_is_staged_on_this_host_and_lands_in_the_bucket(
+def test_a_resumable_upload_is_stored_in_parts_and_lands_in_the_bucket(
     s3_client: TestClient, keys: Keys, bucket: Bucket, data_dir: Path
 ) -> None:
     client = s3_client
@@ -162,15 +167,131 @@ def test_a_resumable_upload_is_staged_on_this_host_and_lands_in_the_bucket(
     r = create_upload(client, keys, env_id, body)
     assert r.status_code == 201, r.text
     url = r.headers["Location"]
-    partial = data_dir / "scratch" / "local" / "uploads" / url.rsplit("/", 1)[1]
+    upload_id = url.rsplit("/", 1)[1]
     half = len(body) // 2
     assert patch_upload(client, keys, url, 0, body[:half]).status_code == 204
-    assert partial.stat().st_size == half and bucket.listed("uploads/") == []
+    [part] = bucket.listed(f"uploads/{upload_id}/")
+    assert part.startswith(f"uploads/{upload_id}/{0:020d}.")
     r = patch_upload(client, keys, url, half, body[half:])
     assert r.status_code == 204, r.text
     snap_id = r.headers["Twindelta-Snapshot"]
     assert len(bucket.listed(f"snapshots/{snap_id}/images/")) == 3
-    assert not partial.exists() and _local_snapshot_files(data_dir) == []
+    assert bucket.listed("uploads/") == [] and _local_snapshot_files(data_dir) == []
+    assert not (data_dir / "scratch" / "local" / "uploads" / upload_id).exists()
+
+
+@dataclass
+class Host:
+    """One API host: its own app and scratch folder; the database and bucket are shared."""
+
+    client: TestClient
+    scratch: Path
+
+
+@pytest.fixture
+def hosts(
+    bucket: Bucket,
+    data_dir: Path,
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+) -> Iterator[list[Host]]:
+    """Three API hosts (separate ``create_app`` instances, scratch ``host1..3``)."""
+    settings = get_settings()
+    with ExitStack() as stack:
+        found = []
+        for n in (1, 2, 3):
+            scratch = data_dir / f"host{n}"
+            own = settings.model_copy(update={"scratch_dir": scratch})
+            app = create_app()
+            app.dependency_overrides[get_settings] = lambda own=own: own
+            found.append(Host(stack.enter_context(TestClient(app)), scratch))
+        yield found
+
+
+def _object(bucket: Bucket, key: str) -> bytes:
+    body = s3_server.client(bucket.endpoint).get_object(
+        Bucket=bucket.name, Key=f"{bucket.prefix}/{key}"
+    )["Body"]
+    return bytes(body.read())
+
+
+def test_a_resumable_upload_created_patched_and_finished_on_three_hosts(
+    hosts: list[Host], keys: Keys, bucket: Bucket
+) -> None:
+    """Created on host 1, PATCHed on host 2, finished on host 3: every host answers the
+    offset from the database, a stale PATCH on host 1 is 409, and the snapshot's files land
+    in the bucket byte for byte; no part is left in the bucket or any host's scratch."""
+    one, two, three = (h.client for h in hosts)
+    env_id = make_env(one, keys)
+    files = capture()
+    body = zip_bytes(nested(files))
+    r = create_upload(one, keys, env_id, body)
+    assert r.status_code == 201, r.text
+    url = r.headers["Location"]
+    upload_id = url.rsplit("/", 1)[1]
+    third = len(body) // 3
+    r = patch_upload(two, keys, url, 0, body[:third])
+    assert r.status_code == 204 and r.headers["Upload-Offset"] == str(third), r.text
+    for host in (one, two, three):
+        r = host.head(url, headers={**keys.headers("capture"), "Tus-Resumable": "1.0.0"})
+        assert r.headers["Upload-Offset"] == str(third)
+    r = patch_upload(one, keys, url, 0, body[:third])
+    assert r.status_code == 409 and r.json()["error"] == "OffsetMismatch"
+    r = patch_upload(two, keys, url, third, body[third : 2 * third])
+    assert r.status_code == 204, r.text
+    assert len(bucket.listed(f"uploads/{upload_id}/")) == 2
+    r = patch_upload(three, keys, url, 2 * third, body[2 * third :])
+    assert r.status_code == 204, r.text
+    snap_id = r.headers["Twindelta-Snapshot"]
+    stored = {
+        "images/a0.jpg": files["a0.jpg"],
+        "images/a1.jpg": files["a1.jpg"],
+        "images/a2.png": files["a2.png"],
+        "labels/a0.txt": files["a0.txt"],
+        "labels/a1.txt": files["a1.txt"],
+        "cameras.json": files["cameras.json"],
+    }
+    assert sorted(bucket.listed(f"snapshots/{snap_id}/")) == sorted(
+        f"snapshots/{snap_id}/{name}" for name in stored
+    )
+    for name, content in stored.items():
+        assert _object(bucket, f"snapshots/{snap_id}/{name}") == content, name
+    assert bucket.listed("uploads/") == []
+    for each in hosts:
+        left = each.scratch / "local" / "uploads"
+        assert not left.exists() or [p for p in left.rglob("*") if p.is_file()] == []
+    info = two.get(url, headers=keys.headers("capture")).json()
+    assert (info["state"], info["snapshot"]) == ("completed", snap_id)
+
+
+def test_two_hosts_patching_one_offset_the_second_stored_is_409(
+    hosts: list[Host],
+    keys: Keys,
+    bucket: Bucket,
+    session_factory: sessionmaker[Session],
+) -> None:
+    """Hosts 2 and 3 both take a PATCH at offset 0 and spool it; host 2 stores first and
+    moves the offset, host 3's store is 409 OffsetMismatch and its part leaves the bucket.
+    The upload then completes from host 2's offset with the right bytes."""
+    body = zip_bytes(nested(capture()))
+    url, row = new_upload(hosts[0].client, keys, session_factory, body)
+    upload_id = row.id
+    settings = get_settings()
+    won, lost = (
+        spooled(
+            open_storage(settings.model_copy(update={"scratch_dir": host.scratch})), row, 0, chunk
+        )
+        for host, chunk in ((hosts[1], body[:100]), (hosts[2], b"\0" * 200))
+    )
+    assert won.store(session_factory, settings).offset_bytes == 100
+    with pytest.raises(Conflict) as refused:
+        lost.store(session_factory, settings)
+    assert refused.value.code == "OffsetMismatch"
+    assert bucket.listed(f"uploads/{upload_id}/") == [f"uploads/{upload_id}/{won.name}"]
+    assert not lost.path.exists()
+    r = patch_upload(hosts[2].client, keys, url, 100, body[100:])
+    assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers, r.text
+    assert bucket.listed("uploads/") == []
 
 
 def test_readyz_names_a_missing_bucket(
@@ -209,10 +330,12 @@ def test_jobs_on_another_host_read_and_publish_through_the_bucket(
     monkeypatch.delenv("TWINDELTA_SCRATCH_DIR")
     get_settings.cache_clear()
 
-    for snap_id in snaps:
+    for snap_id in snaps:  # published under the attempt's folder
+        job_id = twin_order.snapshot_job(session_factory, snap_id)
+        folder = f"snapshots/{snap_id}/reconstruction/{job_id}-1"
         assert set(bucket.listed(f"snapshots/{snap_id}/reconstruction/")) == {
-            f"snapshots/{snap_id}/reconstruction/cloud.ply",
-            f"snapshots/{snap_id}/reconstruction/cameras.json",
+            f"{folder}/cloud.ply",
+            f"{folder}/cameras.json",
         }
     [clusters] = bucket.listed(f"snapshots/{snaps[1]}/comparisons/")
     assert clusters.endswith("/clusters.npz")

@@ -16,11 +16,13 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.core import uploads
+from app.core.errors import Conflict
 from app.core.models import ResumableUpload, Snapshot, utcnow
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from tests.app.api.test_snapshots_upload import capture, make_env, nested, set_limits, zip_bytes
 from tests.app.conftest import Keys, SentTasks
+from tests.app.core.test_uploads import spooled
 
 TUS = {"Tus-Resumable": "1.0.0"}
 OCTETS = {**TUS, "Content-Type": "application/offset+octet-stream"}
@@ -307,12 +309,27 @@ def test_bad_archive_answers_the_single_uploads_error_and_is_removed(
     assert r.status_code == 422 and r.json()["error"] == "InvalidArchive"
 
 
+def new_upload(
+    client: TestClient, keys: Keys, session_factory: sessionmaker[Session], body: bytes
+) -> tuple[str, ResumableUpload]:
+    """An upload of ``body`` to a new environment: its URL and row."""
+    url = create(client, keys, make_env(client, keys), body).headers["Location"]
+    with session_factory() as s:
+        return url, uploads.get(s, url.rsplit("/", 1)[1])
+
+
+def part_sizes(folder: Path) -> list[int]:
+    """The sizes of the stored parts in an upload's folder, in order (no spool files)."""
+    return [p.stat().st_size for p in sorted(folder.iterdir()) if not p.name.startswith(".")]
+
+
 def test_termination_deletes_the_bytes(client: TestClient, keys: Keys, data_dir: Path) -> None:
     env_id = make_env(client, keys)
     url = create(client, keys, env_id, b"x" * 10).headers["Location"]
     assert patch(client, keys, url, 0, b"x" * 4).status_code == 204
+    assert patch(client, keys, url, 4, b"x" * 3).status_code == 204
     partial = data_dir / "files" / "uploads" / url.rsplit("/", 1)[1]
-    assert partial.stat().st_size == 4
+    assert part_sizes(partial) == [4, 3]
     r = client.delete(url, headers={**keys.headers("capture"), **TUS})
     assert r.status_code == 204 and r.headers["Tus-Resumable"] == "1.0.0"
     assert not partial.exists()
@@ -343,19 +360,104 @@ def test_a_key_limited_to_another_environment_sees_404(
     assert r.status_code == 403
 
 
-def test_a_locked_upload_is_423(client: TestClient, keys: Keys, data_dir: Path) -> None:
+def test_an_upload_being_ingested_is_423_until_its_heartbeat_stops(
+    client: TestClient,
+    keys: Keys,
+    sent_tasks: SentTasks,
+    session_factory: sessionmaker[Session],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Another request (on any host) claimed the complete upload and beats: a PATCH at its
+    full offset and a DELETE answer 423; once its heartbeat is FINISH_STALE_S old (the
+    request died), the next PATCH takes over and makes the snapshot."""
+    from app.core import ingest
+    from app.core.enums import UploadState
+
     env_id = make_env(client, keys)
-    url = create(client, keys, env_id, b"x" * 10).headers["Location"]
+    body = archive()
+    url = create(client, keys, env_id, body).headers["Location"]
     upload_id = url.rsplit("/", 1)[1]
-    writer = uploads.Receiver(data_dir / "files" / "uploads" / upload_id, upload_id, 0, 10, None)
-    writer.open()
-    try:
-        r = patch(client, keys, url, 0, b"xx")
-        assert r.status_code == 423 and r.json()["error"] == "UploadLocked"
-        assert client.delete(url, headers={**keys.headers("capture"), **TUS}).status_code == 423
-    finally:
-        writer.close()
-    assert patch(client, keys, url, 0, b"xx").status_code == 204
+    with monkeypatch.context() as m, pytest.raises(RuntimeError):
+        m.setattr(ingest, "create_snapshot", _killed)
+        patch(client, keys, url, 0, body)
+    with session_factory.begin() as s:
+        row = s.get(ResumableUpload, upload_id)
+        assert row is not None and row.state == UploadState.receiving
+        row.state, row.heartbeat_at = UploadState.processing, utcnow()
+    r = patch(client, keys, url, len(body), b"")
+    assert r.status_code == 423 and r.json()["error"] == "UploadLocked"
+    assert client.delete(url, headers={**keys.headers("capture"), **TUS}).status_code == 423
+    assert head(client, keys, url).headers["Upload-Offset"] == str(len(body))
+    with session_factory.begin() as s:
+        row = s.get(ResumableUpload, upload_id)
+        assert row is not None
+        row.heartbeat_at = utcnow() - timedelta(seconds=uploads.FINISH_STALE_S + 1)
+    r = patch(client, keys, url, len(body), b"")
+    assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers
+    assert sent_tasks.names() == ["snapshot.process"]
+
+
+def _killed(*args: object, **kwargs: object) -> object:
+    raise RuntimeError("the request died while ingesting")
+
+
+def test_two_patches_at_one_offset_the_second_stored_is_409_and_leaves_nothing(
+    client: TestClient,
+    keys: Keys,
+    sent_tasks: SentTasks,
+    session_factory: sessionmaker[Session],
+    data_dir: Path,
+) -> None:
+    """Both read offset 0 and spool their bodies; the first stored moves the offset, the
+    other is 409 OffsetMismatch and its part is deleted; the upload completes from there."""
+    body = archive()
+    url, row = new_upload(client, keys, session_factory, body)
+    upload_id = row.id
+    storage = LocalStorage(data_dir / "files")
+    first = spooled(storage, row, 0, body[:100])
+    second = spooled(storage, row, 0, b"\0" * 300)
+    assert first.store(session_factory, get_settings()).offset_bytes == 100
+    with pytest.raises(Conflict) as lost:
+        second.store(session_factory, get_settings())
+    assert lost.value.code == "OffsetMismatch"
+    first.close()
+    second.close()
+    folder = data_dir / "files" / "uploads" / upload_id
+    assert part_sizes(folder) == [100] and sorted(p.name for p in folder.iterdir()) == [first.name]
+    assert head(client, keys, url).headers["Upload-Offset"] == "100"
+    assert patch(client, keys, url, 0, body[:100]).status_code == 409
+    r = patch(client, keys, url, 100, body[100:])
+    assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers
+    snap = client.get(
+        f"/v1/snapshots/{r.headers['Twindelta-Snapshot']}", headers=keys.headers("admin")
+    ).json()
+    assert snap["n_images"] == 3
+
+
+def test_a_request_killed_mid_body_leaves_the_offset_and_its_spool_is_swept(
+    client: TestClient,
+    keys: Keys,
+    sent_tasks: SentTasks,
+    session_factory: sessionmaker[Session],
+    data_dir: Path,
+) -> None:
+    """A killed PATCH leaves only its spool file: the offset does not move, the retry at the
+    same offset completes the upload, and the sweep removes the spool once old."""
+    body = archive()
+    url, row = new_upload(client, keys, session_factory, body)
+    assert patch(client, keys, url, 0, body[:50]).status_code == 204
+    storage = LocalStorage(data_dir / "files")
+    killed = spooled(storage, row, 50, body[50:200])
+    killed.fh.flush()  # the process dies here: never stored, never closed
+    assert killed.path.stat().st_size == 150
+    assert head(client, keys, url).headers["Upload-Offset"] == "50"
+    with session_factory.begin() as s:
+        counts = uploads.expire(s, storage, orphan_age_s=0, now=utcnow() + timedelta(seconds=1))
+    assert counts == {"uploads_expired": 0, "uploads_orphaned": 1}
+    assert not killed.path.exists()
+    killed.fh.close()
+    r = patch(client, keys, url, 50, body[50:])
+    assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers
 
 
 def test_expiry_deletes_expired_uploads_and_orphans(
@@ -364,9 +466,12 @@ def test_expiry_deletes_expired_uploads_and_orphans(
     env_id = make_env(client, keys)
     old_url = create(client, keys, env_id, b"x" * 10).headers["Location"]
     new_url = create(client, keys, env_id, b"x" * 10).headers["Location"]
+    assert patch(client, keys, old_url, 0, b"x" * 3).status_code == 204
+    assert patch(client, keys, new_url, 0, b"x" * 3).status_code == 204
     folder = data_dir / "files" / "uploads"
     orphan = folder / "no-row"
-    orphan.write_bytes(b"left by a killed request")
+    orphan.mkdir()
+    (orphan / f"{0:020d}.0123456789abcdef").write_bytes(b"left by a deleted upload")
     old_id, new_id = old_url.rsplit("/", 1)[1], new_url.rsplit("/", 1)[1]
     with session_factory.begin() as s:
         row = s.get(ResumableUpload, old_id)
@@ -458,7 +563,7 @@ def test_an_unexpected_error_at_the_end_keeps_the_bytes_for_a_retry(
 def test_a_patch_that_loses_the_race_to_the_last_byte_gets_the_final_answer(
     client: TestClient, keys: Keys, sent_tasks: SentTasks, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Read while receiving, locked after another request completed it (its bytes gone)."""
+    """Read while receiving; when its (empty) chunk is stored the upload has ended."""
     from app.api.routes import uploads as route
     from app.core.enums import UploadState
 
@@ -478,5 +583,5 @@ def test_a_patch_that_loses_the_race_to_the_last_byte_gets_the_final_answer(
 
     monkeypatch.setattr(route, "_load", stale)
     r = patch(client, keys, url, len(body), b"")
-    assert r.status_code == 204 and len(calls) == 2
+    assert r.status_code == 204 and len(calls) == 1
     assert r.headers["Twindelta-Snapshot"] == done.headers["Twindelta-Snapshot"]

@@ -1,10 +1,12 @@
 """The object job: sample a library model, measure its diameter, compute its features and
 detect its symmetry (unless the user gave one); the artefacts are kept in storage so pose
-estimation loads them instead of recomputing."""
+estimation loads them instead of recomputing. They are published under this attempt's folder
+(``objects/<id>/prepared/<job id>-<attempt>``) before the transaction that records them
+(workers.runner.publish)."""
 
 from __future__ import annotations
 
-from pathlib import Path
+from dataclasses import dataclass
 
 from sqlalchemy.orm import Session
 
@@ -13,18 +15,27 @@ from app.core.db import transaction
 from app.core.enums import ObjectState
 from workers.pipeline.model import MODEL_PRESETS, PreparedModel, prepare_model
 from workers.pipeline.model.symmetry_group import spec_from_json, spec_to_json
-from workers.runner import JobContext, run_job
+from workers.runner import JobContext, Published, drop_stale, publish, run_job, unpublish
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """The prepared model and where its artefacts were published."""
+
+    model: PreparedModel
+    published: Published
 
 
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist)
+    return run_job(job_id, _compute, _persist, unpublish)
 
 
-def artifacts_key(object_id: str) -> str:
+def artifacts_root(object_id: str) -> str:
+    """The folder holding each attempt's artefacts folder of the object."""
     return f"objects/{object_id}/prepared"
 
 
-def _compute(ctx: JobContext) -> PreparedModel:
+def _compute(ctx: JobContext) -> Prepared:
     object_id = ctx.job.object_id
     if object_id is None:
         raise ValueError(f"job {ctx.job.id} has no object")
@@ -44,18 +55,20 @@ def _compute(ctx: JobContext) -> PreparedModel:
         name=name,
     )
     ctx.progress("prepare", 1.0)
-    return model
+    published = publish(ctx, artifacts_root(object_id), ctx.work_dir / "prepared")
+    return Prepared(model, published)
 
 
-def _persist(session: Session, ctx: JobContext, model: PreparedModel) -> None:
+def _persist(session: Session, ctx: JobContext, prepared: Prepared) -> None:
+    """Record the published artefacts (no bucket call here); other attempts' folders go
+    after the commit."""
     object_id = ctx.job.object_id
     assert object_id is not None
-    key = artifacts_key(object_id)
-    ctx.storage.delete_prefix(key)
-    ctx.storage.move_in(Path(ctx.work_dir / "prepared"), key)
+    model, published = prepared.model, prepared.published
+    drop_stale(session, ctx, published)
     obj = objects.get(session, object_id)
     obj.state = ObjectState.ready
     obj.diameter_m = float(model.diameter_m)
     obj.n_points = int(model.points.shape[0])
     obj.symmetry = spec_to_json(model.symmetry)
-    obj.artifacts_key = key
+    obj.artifacts_key = published.folder

@@ -13,22 +13,31 @@
 Transient database faults (a lock past the busy timeout, a PostgreSQL restart) are not the
 job's failure. Progress writes skip them; the claim, the final write and the failure write
 are retried for up to ``Settings.db_retry_s``; one met inside ``compute`` gives the job back
-to the queue. A final write that cannot be retried safely (``persist`` had begun moving
-files) or a database down past the bound leaves the job ``running`` without a heartbeat,
-for the sweeper to requeue: never ``failed`` for a fault that was not the job's.
+to the queue. A final write that cannot be retried safely (``persist`` had begun; the
+commit may have happened) or a database down past the bound leaves the job ``running``
+without a heartbeat, for the sweeper to requeue: never ``failed`` for a fault that was not
+the job's.
+
+Files a job makes are published before its persist transaction opens (:func:`publish`, in
+``compute``), under a folder of this attempt (``<root>/<job id>-<attempt>``), so no bucket
+transfer runs while the transaction holds row locks and a stale attempt (its job requeued
+after a heartbeat timeout) never overwrites what the winner recorded. ``discard`` removes
+them when the result is certainly not recorded; ``persist`` schedules the other attempts'
+folders for deletion after its commit (:func:`app.core.retention.delete_after_commit`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import shutil
 import socket
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypeVar
+from typing import Protocol, TypeVar
 
 from sqlalchemy.orm import Session
 
@@ -37,6 +46,7 @@ from app.core.db import transaction
 from app.core.enums import JobState
 from app.core.errors import DomainError
 from app.core.models import Job
+from app.core.retention import delete_after_commit
 from app.core.settings import Settings, get_settings
 from app.core.storage import Storage, open_storage
 from workers.pipeline.errors import Cancelled, PipelineError
@@ -72,14 +82,76 @@ def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+@dataclass(frozen=True)
+class Published:
+    """Files an attempt published before persisting: ``folder`` is its own
+    (``<root>/<job id>-<attempt>``); ``stale`` the other folders under ``root`` when it
+    published (earlier attempts', killed or stale), to delete once its result is recorded."""
+
+    folder: str
+    stale: tuple[str, ...]
+
+    def key(self, name: str) -> str:
+        return f"{self.folder}/{name}"
+
+
+def publish(ctx: JobContext, root: str, files: Mapping[str, Path] | Path) -> Published:
+    """Move ``files`` in as this attempt's folder below ``root`` (a local folder: its
+    contents; a mapping: name → local file or folder), then list ``root``'s other folders.
+    Runs outside any transaction. When the store fails, what was moved in is removed and
+    the OSError raised."""
+    folder = f"{root}/{ctx.job.id}-{ctx.attempt}"
+    pairs = (
+        [(files, folder)]
+        if isinstance(files, Path)
+        else [(path, f"{folder}/{name}") for name, path in files.items()]
+    )
+    try:
+        for path, key in pairs:
+            ctx.storage.move_in(path, key)
+        others = sorted(f"{root}/{name}" for name in ctx.storage.folders(root))
+    except BaseException:
+        with contextlib.suppress(OSError):  # the store is failing; raise what failed first
+            ctx.storage.delete_prefix(folder)
+        raise
+    return Published(folder, tuple(key for key in others if key != folder))
+
+
+def drop_stale(session: Session, ctx: JobContext, published: Published) -> None:
+    """Delete the folders other attempts left under ``published``'s root once ``session``
+    commits (for ``persist``, which records ``published``)."""
+    for key in published.stale:
+        delete_after_commit(session, ctx.storage, key)
+
+
+class HasPublished(Protocol):
+    """A job result that carries what its attempt published."""
+
+    @property
+    def published(self) -> Published: ...
+
+
+def unpublish(ctx: JobContext, result: HasPublished) -> None:
+    """Remove the folder ``result``'s attempt published (a ``discard``: the result was not
+    recorded)."""
+    ctx.storage.delete_prefix(result.published.folder)
+
+
 def run_job(
     job_id: str,
     compute: Callable[[JobContext], R],
     persist: Callable[[Session, JobContext, R], None],
+    discard: Callable[[JobContext, R], None] | None = None,
 ) -> str:
     """Run one job to a final state; returns what happened (for logs and tests): succeeded,
     failed, cancelled, skipped (not ours to run), lost (another attempt owns it), requeued
-    (a transient database error) or deferred (left running for the sweeper)."""
+    (a transient database error) or deferred (left running for the sweeper).
+
+    ``discard(ctx, result)`` removes what ``compute`` published when the result is certainly
+    not recorded: the attempt lost the job before persisting, ``persist`` raised (its
+    transaction rolled back) or the user cancelled after ``compute``. After a transient
+    error during ``persist`` or any error at the commit, the commit may have happened, so
+    nothing is discarded; the next attempt's ``persist`` removes what is left."""
     settings = get_settings()
     bound = settings.db_retry_s
     attempt = retry_transient(lambda: _claim(job_id), bound_s=bound, what=f"claim of job {job_id}")
@@ -93,12 +165,15 @@ def run_job(
         job_id, attempt, settings.progress_interval_s, settings.heartbeat_interval_s
     )
     ctx = JobContext(job, attempt, reporter, work_dir, storage, settings)
+    computed: list[R] = []
     try:
         with reporter:
-            result = compute(ctx)
+            computed.append(compute(ctx))
             reporter.check_cancelled()
-        outcome = _succeed(ctx, persist, result)
+        outcome = _succeed(ctx, persist, computed[0], discard)
     except Cancelled:
+        if computed:
+            _discard(ctx, discard, computed[0])
         outcome = _end(ctx, JobState.cancelled, "Cancelled", "cancelled by request")
     except (PipelineError, JobFailure, DomainError) as exc:
         outcome = _end(ctx, JobState.failed, exc.code, exc.detail)
@@ -124,27 +199,37 @@ def _read(job_id: str) -> Job:
         return jobs.get(session, job_id)
 
 
-def _succeed(ctx: JobContext, persist: Callable[[Session, JobContext, R], None], result: R) -> str:
+def _succeed(
+    ctx: JobContext,
+    persist: Callable[[Session, JobContext, R], None],
+    result: R,
+    discard: Callable[[JobContext, R], None] | None,
+) -> str:
     """Mark the job succeeded and persist its result in one transaction. A transient error
     before ``persist`` began is retried (nothing outside the database was touched yet); one
-    after it gives the job back to the queue, since ``persist`` may have moved files."""
+    after it gives the job back to the queue, since the commit may have happened.
+    ``discard`` runs when the result is certainly not recorded (see :func:`run_job`)."""
     job_id, attempt = ctx.job.id, ctx.attempt
     deadline = time.monotonic() + ctx.settings.db_retry_s
     delay = FIRST_DELAY_S
     while True:
-        began = False
+        began = committing = False
         try:
             with transaction() as session:
-                if jobs.finish(session, job_id, attempt, JobState.succeeded) is None:
-                    log.warning(
-                        "job %s attempt %s lost ownership; result discarded", job_id, attempt
-                    )
-                    return "lost"
-                began = True
-                persist(session, ctx, result)
+                owned = jobs.finish(session, job_id, attempt, JobState.succeeded) is not None
+                if owned:
+                    began = True
+                    persist(session, ctx, result)
+                committing = True  # an error from here on may follow the commit
+            if not owned:
+                log.warning("job %s attempt %s lost ownership; result discarded", job_id, attempt)
+                _discard(ctx, discard, result)
+                return "lost"
             return "succeeded"
         except Exception as exc:
             if not is_transient(exc):
+                if not committing:  # rolled back
+                    _discard(ctx, discard, result)
                 raise
             if began:
                 log.warning("job %s: the database failed during persist: %s", job_id, exc)
@@ -155,6 +240,17 @@ def _succeed(ctx: JobContext, persist: Callable[[Session, JobContext, R], None],
             log.warning("job %s: final write failed, retrying in %.1f s: %s", job_id, delay, exc)
         time.sleep(delay)
         delay = min(delay * 2, MAX_DELAY_S)
+
+
+def _discard(ctx: JobContext, discard: Callable[[JobContext, R], None] | None, result: R) -> None:
+    """``discard(ctx, result)``; a failure is logged (the next attempt's persist or the
+    snapshot's deletion removes what is left), never the job's."""
+    if discard is None:
+        return
+    try:
+        discard(ctx, result)
+    except Exception:
+        log.exception("job %s: could not remove what attempt %s published", ctx.job.id, ctx.attempt)
 
 
 def _end(ctx: JobContext, state: JobState, code: str, detail: str) -> str:

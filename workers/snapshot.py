@@ -1,6 +1,8 @@
 """The snapshot job: re-read the upload (image sizes, detections) → reconstruct the cloud
 in the environment frame → take its inventory (every library object it shows, posed:
-workers.pipeline.inventory) → record quality and inventory → move the twin's chain on
+workers.pipeline.inventory) → publish the cloud and cameras under this attempt's folder
+(``<prefix>/reconstruction/<job id>-<attempt>/``, before the transaction: workers.runner
+.publish) → record quality, keys and inventory → move the twin's chain on
 (app.core.twin.advance: the first snapshot fills the twin from its inventory; later ones
 wait for the automatic comparison with the newest earlier reconstructed snapshot, once
 every earlier snapshot is settled)."""
@@ -28,7 +30,7 @@ from workers.pipeline.reconstruct.cameras import load_cameras
 from workers.pipeline.reconstruct.options import options_from_preset
 from workers.pipeline.reconstruct.stage import ReconstructionResult, reconstruct
 from workers.progress import weighted
-from workers.runner import JobContext, run_job
+from workers.runner import JobContext, Published, drop_stale, publish, run_job, unpublish
 
 # Rough shares of a snapshot job's time (30 views at 800×600 on 2 cores), for one overall
 # progress figure.
@@ -75,8 +77,19 @@ class Inventory:
     summary: dict[str, Any]
 
 
+@dataclass(frozen=True)
+class Outcome:
+    """What the compute phase made: the reconstruction (or the scan's cloud), the inventory
+    (None for a scan) and where its files were published."""
+
+    inputs: SnapshotInputs
+    result: ReconstructionResult
+    inventory: Inventory | None
+    published: Published
+
+
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist)
+    return run_job(job_id, _compute, _persist, unpublish)
 
 
 def _load(ctx: JobContext) -> SnapshotInputs:
@@ -107,18 +120,26 @@ def _load(ctx: JobContext) -> SnapshotInputs:
         )
 
 
-Outcome = tuple[SnapshotInputs, ReconstructionResult, Inventory | None]
-
-
 def _compute(ctx: JobContext) -> Outcome:
     inputs = _load(ctx)
     if inputs.source == SnapshotSource.scan:  # a laser scan: read, not reconstructed
         # no photos, so no detector boxes to identify objects by: no inventory
-        scanned = scan_snapshot.compute(ctx, inputs.prefix, inputs.reference, inputs.options)
-        return inputs, scanned, None
+        result = scan_snapshot.compute(ctx, inputs.prefix, inputs.reference, inputs.options)
+        found = None
+    else:
+        result, found = _reconstruct(ctx, inputs)
+    files = {"cloud.ply": Path(result.cloud_path), "cameras.json": Path(result.cameras_path)}
+    return Outcome(inputs, result, found, publish(ctx, f"{inputs.prefix}/reconstruction", files))
+
+
+def _reconstruct(ctx: JobContext, inputs: SnapshotInputs) -> tuple[ReconstructionResult, Inventory]:
+    """Ingest (the photos fetched and listed once), reconstruction and inventory."""
     progress = weighted(ctx.progress, STAGE_WEIGHTS)
     progress("ingest", 0.0)
-    records = ingest.read_capture(ctx.storage, inputs.prefix, inputs.classes, ctx.settings)
+    images_dir = ctx.storage.local_dir(f"{inputs.prefix}/images")
+    records = ingest.read_capture(
+        ctx.storage, inputs.prefix, inputs.classes, ctx.settings, images_dir=images_dir
+    )
     with transaction() as session:
         ingest.record_images(session, inputs.snapshot_id, records)
     progress("ingest", 1.0)
@@ -129,7 +150,7 @@ def _compute(ctx: JobContext) -> Outcome:
     options = dict(inputs.options)
     preset = str(options.pop("preset", ctx.job.preset or "default"))
     result = reconstruct(
-        images_dir=ctx.storage.local_dir(f"{inputs.prefix}/images"),
+        images_dir=images_dir,
         work_dir=ctx.work_dir / "reconstruct",
         options=options_from_preset(preset, **options),
         cameras=load_cameras(cameras_path) if cameras_path is not None else None,
@@ -139,7 +160,7 @@ def _compute(ctx: JobContext) -> Outcome:
         ),
         progress=progress,
     )
-    return inputs, result, _inventory(ctx, inputs, result, records, progress)
+    return result, _inventory(ctx, inputs, result, records, progress)
 
 
 def _inventory(
@@ -195,16 +216,16 @@ def _inventory(
 
 
 def _persist(session: Session, ctx: JobContext, outcome: Outcome) -> None:
-    inputs, result, found = outcome
-    out = f"{inputs.prefix}/reconstruction"
-    ctx.storage.delete_prefix(out)
-    for name, path in (("cloud.ply", result.cloud_path), ("cameras.json", result.cameras_path)):
-        ctx.storage.move_in(Path(path), f"{out}/{name}")
+    """Record the published files (no bucket call here); other attempts' folders go after
+    the commit."""
+    inputs, result, found = outcome.inputs, outcome.result, outcome.inventory
+    published = outcome.published
+    drop_stale(session, ctx, published)
     snap = snapshots.get(session, inputs.snapshot_id)
     snap.state = SnapshotState.reconstructed
     snap.quality = result.quality
-    snap.pointcloud_key = f"{out}/cloud.ply"
-    snap.cameras_key = f"{out}/cameras.json"
+    snap.pointcloud_key = published.key("cloud.ply")
+    snap.cameras_key = published.key("cameras.json")
     snap.reconstructed_at = utcnow()
     if found is not None:
         inventory.record(session, snap, found.objects, found.summary)

@@ -26,7 +26,13 @@ from numpy.typing import NDArray
 
 from app.core.errors import Conflict
 from app.core.export.derived import ensure_derived
-from app.core.export.ply import PlyError, colors_of, iter_vertices, read_header
+from app.core.export.ply import (
+    PlyError,
+    colors_of,
+    iter_vertices,
+    read_header,
+    read_stream_header,
+)
 from app.core.storage import Storage
 
 SEED = 20
@@ -90,10 +96,12 @@ def ply_header(n_points: int, comment: str = "") -> bytes:
 
 
 def total_points(storage: Storage, pointcloud_key: str) -> int:
-    """Points in the stored cloud (its header's vertex count); 409 PointCloudUnreadable
-    when the header cannot be read."""
+    """Points in the stored cloud: its header's vertex count, read from the start of the
+    object's stream (the cloud is not fetched). FileNotFoundError when it is missing; 409
+    PointCloudUnreadable when the header cannot be read."""
     try:
-        return read_header(storage.local_file(pointcloud_key))[1].count
+        with storage.open(pointcloud_key) as fh:
+            return read_stream_header(fh, PurePosixPath(pointcloud_key).name)[1].count
     except PlyError as exc:
         raise Conflict(str(exc), code="PointCloudUnreadable") from exc
 

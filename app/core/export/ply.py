@@ -19,11 +19,13 @@ from numpy.typing import NDArray
 
 from app.formats import FormatError
 from app.formats.ply import (
+    HEADER_MAX_BYTES,
     PLY_SCALARS,
     PlyElement,
     PlyHeader,
     PlyProperty,
     read_ply_file_header,
+    read_ply_header,
     vertex_element,
 )
 
@@ -57,6 +59,28 @@ def read_header(path: Path) -> tuple[PlyHeader, PlyElement]:
     try:
         header = read_ply_file_header(path)
         return header, vertex_element(header, path.name)
+    except FormatError as exc:
+        raise PlyError(exc.detail) from exc
+
+
+def read_stream_header(fh: BinaryIO, where: str, chunk: int = 4096) -> tuple[PlyHeader, PlyElement]:
+    """The header and leading vertex element of the PLY stream ``fh``, reading ``chunk``
+    bytes at a time only until the ``end_header`` line (at most
+    :data:`app.formats.ply.HEADER_MAX_BYTES`), so a stored cloud is not fetched whole. The
+    counts are not checked against the size (the stream's is unknown here); PlyError as
+    :func:`read_header`."""
+    head = b""
+    while len(head) < HEADER_MAX_BYTES:
+        data = fh.read(min(chunk, HEADER_MAX_BYTES - len(head)))
+        if not data:
+            break
+        head += data
+        end = head.find(b"end_header")
+        if end >= 0 and head.find(b"\n", end) >= 0:
+            break
+    try:
+        header = read_ply_header(head, where)
+        return header, vertex_element(header, where)
     except FormatError as exc:
         raise PlyError(exc.detail) from exc
 

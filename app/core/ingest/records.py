@@ -37,11 +37,18 @@ class ImageRecord:
 
 
 def read_capture(
-    storage: Storage, prefix: str, classes: Sequence[str], settings: Settings
+    storage: Storage,
+    prefix: str,
+    classes: Sequence[str],
+    settings: Settings,
+    images_dir: Path | None = None,
 ) -> list[ImageRecord]:
     """Re-read a stored capture: each image's size (checked as on upload) and its detections,
-    sorted by image name. Raises the upload's DomainErrors if the files changed since."""
-    images_dir = storage.local_dir(f"{prefix}/images")
+    sorted by image name. ``images_dir``: the photos' local folder when the caller fetched
+    it already (``storage.local_dir(f"{prefix}/images")``; with S3 each fetch lists the
+    bucket). Raises the upload's DomainErrors if the files changed since."""
+    if images_dir is None:
+        images_dir = storage.local_dir(f"{prefix}/images")
     try:
         labels_dir: Path | None = storage.local_dir(f"{prefix}/labels")
     except FileNotFoundError:

@@ -18,10 +18,12 @@ from pathlib import Path
 import httpx
 import pytest
 
-from app.client import free_port
+from app.client import embedded_service, free_port
+from bench.console_browser import CONSOLE_DIST
 from bench.loopback import redis_command
 from tests.app.conftest import create_pg_database, drop_pg_database, migrate
 from tests.conftest import REPO_ROOT
+from tests.e2e.console_fixtures import EMBEDDED_ADMIN_KEY, ProcessedScene, process_small_scene
 
 ADMIN_KEY = "td_e2e_admin_key_0123456789abcdef"
 SECRET_KEY = "td_e2e_secret_key_0123456789abcdefghijklmnop"  # encrypts secrets at rest
@@ -277,3 +279,23 @@ def poll_job(
 
     wait_until(done, timeout_s, f"job {job_id} (last: {last})", every_s=0.1)
     return last
+
+
+@pytest.fixture(scope="session")
+def embedded_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
+    """``twindelta serve`` (SQLite, file-system broker) serving console/dist at /ui/; an
+    admin client. One service for the session: the full flow and the console's tests."""
+    work = tmp_path_factory.mktemp("embedded")
+    with embedded_service(
+        work / "data", EMBEDDED_ADMIN_KEY, work / "service.log", console_dir=str(CONSOLE_DIST)
+    ) as client:
+        yield client
+
+
+@pytest.fixture(scope="session")
+def small_scene(
+    embedded_api: httpx.Client, tmp_path_factory: pytest.TempPathFactory
+) -> ProcessedScene:
+    """The embedded service once it has processed the 16-view 640x480 'moved' scene (two
+    reconstructions and the automatic comparison, 1-3 min): see process_small_scene."""
+    return process_small_scene(embedded_api, tmp_path_factory.mktemp("scene"))

@@ -1,20 +1,22 @@
-"""Helpers for the console's browser tests: a small generated scene processed by the real
-embedded service, API keys. Building the console and launching Chromium live in
-bench/console_browser.py (the benchmark uses them too)."""
+"""A small generated scene processed by the real embedded service (shared by the full flow
+and the console's browser tests through tests/e2e/conftest.py), API keys. Building the
+console and launching Chromium live in bench/console_browser.py (the benchmark uses them
+too)."""
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import httpx
 
 from app.client import check, poll_job, upload_capture
-from workers.pipeline.synth import generate, preset
+from bench.loopback import generate_world
 
 SHOTS_DIR = Path("/tmp/console-shots")
+EMBEDDED_ADMIN_KEY = "td_embedded_e2e_admin_key_0123456789"  # conftest's embedded_api
 
 
 @dataclass(frozen=True)
@@ -29,22 +31,13 @@ class ProcessedScene:
     scene_dir: Path  # the generated scene: before/, after/ capture folders, objects/
 
 
-def small_scene_options(n_views: int = 16) -> Any:
-    options = preset("demo")
-    return replace(
-        options,
-        path=replace(options.path, n_views=n_views),
-        camera=replace(options.camera, width=640, height=480, focal_px=520.0),
-    )
-
-
 def process_small_scene(client: httpx.Client, work: Path, name: str = "cell") -> ProcessedScene:
     """Generate a 16-view 640x480 scene with one moved object, upload the library objects and
     both captures through ``client`` (admin), wait for the reconstructions and the
     automatic comparison; raises AssertionError when a job does not succeed."""
     scene = work / "scene"
     if not (scene / "ground_truth.json").exists():
-        generate(scene, "moved", 1, small_scene_options())
+        generate_world(scene, "moved", 1, 16, (640, 480), 520.0)
     truth = json.loads((scene / "ground_truth.json").read_text())
     for cls in truth["classes"]:
         model = (scene / "objects" / f"{cls}.ply").read_bytes()

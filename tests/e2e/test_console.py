@@ -17,14 +17,15 @@ import httpx
 import numpy as np
 import pytest
 
-from app.client import check, embedded_service, poll_job
+from app.client import check, poll_job
 from bench.console_browser import build_console, chromium, wait_for_cloud
-from tests.e2e.console_fixtures import SHOTS_DIR, ProcessedScene, create_key, process_small_scene
+from tests.e2e.console_fixtures import EMBEDDED_ADMIN_KEY as ADMIN_KEY
+from tests.e2e.console_fixtures import SHOTS_DIR, ProcessedScene, create_key
 
 # the first test also processes the scene (two reconstructions and a comparison, 2-4 min)
+# unless the full flow did (they share conftest's small_scene)
 pytestmark = [pytest.mark.slow, pytest.mark.e2e, pytest.mark.timeout(900)]
 pytest.importorskip("playwright.sync_api")
-ADMIN_KEY = "td_console_e2e_admin_key_0123456789"
 CLEAR_RGB = np.array([0x14, 0x17, 0x1C])  # the viewer's clear colour (console/src/viewer.ts)
 
 
@@ -44,22 +45,16 @@ class Shots:
 
 
 @pytest.fixture(scope="module")
-def api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[httpx.Client]:
-    """The embedded service serving the built console (admin client)."""
-    dist = build_console()
-    work = tmp_path_factory.mktemp("console")
-    with embedded_service(
-        work / "data", ADMIN_KEY, work / "service.log", console_dir=str(dist)
-    ) as client:
-        yield client
+def api(embedded_api: httpx.Client) -> httpx.Client:
+    """The session's embedded service (conftest's embedded_api) with the console built."""
+    build_console()
+    return embedded_api
 
 
 @pytest.fixture(scope="module")
-def service(
-    api: httpx.Client, tmp_path_factory: pytest.TempPathFactory
-) -> tuple[httpx.Client, ProcessedScene]:
+def service(api: httpx.Client, small_scene: ProcessedScene) -> tuple[httpx.Client, ProcessedScene]:
     """The service once it has processed the small generated scene."""
-    return api, process_small_scene(api, tmp_path_factory.mktemp("scene"))
+    return api, small_scene
 
 
 @pytest.fixture(scope="module")

@@ -83,7 +83,10 @@ def embedded_service(
     finally:
         client.close()
         if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
+            # SIGTERM to serve alone: it stops its workers, which stop their pool children.
+            # Sent to the whole group, it also reaches a CPU worker's pool child, and once
+            # that child has loaded pycolmap its Celery parent hangs until serve's 20 s kill.
+            proc.terminate()
             try:
                 proc.wait(timeout=30)
             except subprocess.TimeoutExpired:

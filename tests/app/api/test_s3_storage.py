@@ -12,6 +12,7 @@ import hashlib
 from collections.abc import Iterator
 from contextlib import ExitStack
 from dataclasses import dataclass
+from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +20,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import ingest, snapshots
+from app.core import ingest, snapshots, uploads
 from app.core.enums import JobState, SnapshotState
 from app.core.errors import Conflict
-from app.core.models import Job
+from app.core.models import Job, ResumableUpload, utcnow
 from app.core.settings import get_settings
 from app.core.storage import S3Storage, open_storage
 from app.main import create_app
@@ -292,6 +293,29 @@ def test_two_hosts_patching_one_offset_the_second_stored_is_409(
     r = patch_upload(hosts[2].client, keys, url, 100, body[100:])
     assert r.status_code == 204 and "Twindelta-Snapshot" in r.headers, r.text
     assert bucket.listed("uploads/") == []
+
+
+def test_the_upload_sweep_empties_the_bucket_of_expired_and_orphaned_parts(
+    s3_client: TestClient, keys: Keys, bucket: Bucket, session_factory: sessionmaker[Session]
+) -> None:
+    """maintenance.uploads with S3: an expired upload's parts leave the bucket with its row,
+    a part folder with no row goes once old, a live upload's parts stay."""
+    body = zip_bytes(nested(capture()))
+    old_url, old = new_upload(s3_client, keys, session_factory, body)
+    live_url = create_upload(s3_client, keys, old.environment_id, body).headers["Location"]
+    for url in (old_url, live_url):
+        assert patch_upload(s3_client, keys, url, 0, body[:100]).status_code == 204
+    storage = open_storage(get_settings())
+    storage.write_bytes(f"uploads/no-row/{0:020d}.0123456789abcdef", b"left by a deleted upload")
+    with session_factory.begin() as s:
+        row = s.get(ResumableUpload, old.id)
+        assert row is not None
+        row.expires_at = utcnow() - timedelta(seconds=1)
+    with session_factory.begin() as s:
+        counts = uploads.expire(s, storage, orphan_age_s=0, now=utcnow() + timedelta(seconds=2))
+    assert counts == {"uploads_expired": 1, "uploads_orphaned": 1}
+    [part] = bucket.listed("uploads/")
+    assert part.startswith(f"uploads/{live_url.rsplit('/', 1)[1]}/")
 
 
 def test_readyz_names_a_missing_bucket(

@@ -1,5 +1,6 @@
 """The comparison job: change detection and identification between two snapshots, a pose
-for every identified object that appeared, a re-projection check of each pose, then the
+for every identified object that appeared, a re-projection check of each pose, the change
+clusters' points published under this attempt's folder (workers.runner.publish), then the
 result, the ``comparison.completed`` event and, for an automatic comparison, the twin's
 update (app.core.twin.advance, in seq order) in one transaction."""
 
@@ -36,7 +37,7 @@ from workers.pipeline.errors import PipelineError
 from workers.pipeline.model import load_prepared
 from workers.pipeline.pose.posing import pose_changes
 from workers.progress import weighted
-from workers.runner import JobContext, run_job
+from workers.runner import JobContext, Published, drop_stale, publish, run_job, unpublish
 
 
 @dataclass(frozen=True)
@@ -58,18 +59,19 @@ class ComparisonInputs:
     options: dict[str, Any]
     twin: list[TwinInstance]
     models: dict[str, tuple[str, float, str]]  # class → (object id, diameter m, artifacts key)
-    clusters_key: str  # where the change clusters' points go (app.core.change_clusters)
+    folder: str  # the comparison's folder (app.core.change_clusters.comparison_folder)
 
 
 @dataclass
 class ComparisonOutcome:
     inputs: ComparisonInputs
     result: CompareResult
+    published: Published  # the change clusters' points
     changes: list[dict[str, Any]] = field(default_factory=list)
 
 
 def run(job_id: str) -> str:
-    return run_job(job_id, _compute, _persist)
+    return run_job(job_id, _compute, _persist, unpublish)
 
 
 def _capture(session: Session, snapshot_id: str) -> CaptureFiles:
@@ -109,7 +111,7 @@ def _load(ctx: JobContext) -> ComparisonInputs:
         return ComparisonInputs(
             comparison_id=comparison.id,
             environment_id=env.id,
-            clusters_key=change_clusters.clusters_key(after_prefix, comparison.id),
+            folder=change_clusters.comparison_folder(after_prefix, comparison.id),
             before=_capture(session, comparison.before_id),
             after=_capture(session, comparison.after_id),
             classes=list(env.classes),
@@ -174,8 +176,7 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
         compare_options,
         progress,
     )
-    outcome = ComparisonOutcome(inputs=inputs, result=result)
-    outcome.changes.extend(
+    changes = list(
         pose_changes(
             result,
             after,
@@ -187,20 +188,21 @@ def _compute(ctx: JobContext) -> ComparisonOutcome:
             progress,
         )
     )
-    _store_clusters(ctx, inputs.clusters_key, result)
-    return outcome
+    npz = ctx.work_dir / change_clusters.FILE
+    npz.write_bytes(clusters_npz(result))
+    published = publish(ctx, inputs.folder, {change_clusters.FILE: npz})
+    return ComparisonOutcome(inputs=inputs, result=result, published=published, changes=changes)
 
 
-def _store_clusters(ctx: JobContext, key: str, result: CompareResult) -> None:
-    """The change clusters' points for the console (at most 20 000 a cluster)."""
+def clusters_npz(result: CompareResult) -> bytes:
+    """The ``clusters.npz`` of the change clusters' points for the console (at most 20 000
+    a cluster; app.core.change_clusters)."""
     change_of: dict[int, str] = {}
     for change in result.changes:
         for cluster in (change.cluster, change.previous_cluster):
             if cluster is not None:
                 change_of.setdefault(cluster.id, change.id)
-    change_clusters.write(
-        ctx.storage,
-        key,
+    return change_clusters.to_npz(
         [
             change_clusters.StoredCluster(
                 id=c.id,
@@ -216,6 +218,7 @@ def _store_clusters(ctx: JobContext, key: str, result: CompareResult) -> None:
 
 def _persist(session: Session, ctx: JobContext, outcome: ComparisonOutcome) -> None:
     inputs, result = outcome.inputs, outcome.result
+    drop_stale(session, ctx, outcome.published)
     comparison = comparisons.get(session, inputs.comparison_id)
     data = result.to_json()
     comparison.state = ComparisonState.succeeded

@@ -100,7 +100,7 @@ def publish(ctx: JobContext, root: str, files: Mapping[str, Path] | Path) -> Pub
     contents; a mapping: name → local file or folder), then list ``root``'s other folders.
     Runs outside any transaction. When the store fails, what was moved in is removed and
     the OSError raised."""
-    folder = f"{root}/{ctx.job.id}-{ctx.attempt}"
+    folder = jobs.attempt_folder(root, ctx.job.id, ctx.attempt)
     pairs = (
         [(files, folder)]
         if isinstance(files, Path)

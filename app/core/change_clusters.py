@@ -2,9 +2,11 @@
 console draws (``GET /v1/comparisons/{id}/clusters``) and re-projects into photos
 (``.../changes/{change_id}/views``).
 
-One ``clusters.npz`` per comparison, beside the *after* snapshot's files
-(``<after prefix>/comparisons/<comparison id>/clusters.npz``, so it goes with that
-snapshot's files). Arrays (NumPy ``.npz``, no pickled objects):
+One ``clusters.npz`` per comparison, beside the *after* snapshot's files, in the folder of
+the job attempt that made it (``<after prefix>/comparisons/<comparison id>/<job id>-<attempt>
+/clusters.npz``: a stale attempt never overwrites the winner's, whose attempt the job row
+keeps; directly in the comparison's folder for one made before), so it goes with that
+snapshot's files. Arrays (NumPy ``.npz``, no pickled objects):
 
 - ``ids`` (C,) int64: the cluster ids of the comparison's ``clusters`` table;
 - ``sides`` (C,) str: ``added`` (points of the after cloud) or ``removed`` (of the before);
@@ -26,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.core.errors import Conflict
+from app.core.jobs import attempt_folder
 from app.core.storage import Storage
 
 MAX_STORED_POINTS = 20_000
@@ -50,9 +53,19 @@ def comparison_folder(after_storage_prefix: str, comparison_id: str) -> str:
     return f"{after_storage_prefix}/comparisons/{comparison_id}"
 
 
-def clusters_key(after_storage_prefix: str, comparison_id: str) -> str:
-    """The storage key of a comparison's cluster points."""
-    return f"{comparison_folder(after_storage_prefix, comparison_id)}/clusters.npz"
+FILE = "clusters.npz"
+
+
+def clusters_key(
+    after_storage_prefix: str, comparison_id: str, job_id: str | None = None, attempt: int = 0
+) -> str:
+    """The storage key of a comparison's cluster points as attempt ``attempt`` of its job
+    ``job_id`` publishes them; without ``job_id``, where comparisons made before attempts
+    had folders keep them."""
+    folder = comparison_folder(after_storage_prefix, comparison_id)
+    if job_id is not None:
+        folder = attempt_folder(folder, job_id, attempt)
+    return f"{folder}/{FILE}"
 
 
 def subsample(

@@ -30,7 +30,7 @@ from app.core.enums import ComparisonState
 from app.core.errors import Conflict, NotFound
 from app.core.export import decimate
 from app.core.export.ply import PlyError, read_header
-from app.core.models import Change, Comparison, Environment, Snapshot
+from app.core.models import Change, Comparison, Environment, Job, Snapshot
 from app.core.snapshot_images import PinholeCamera
 from app.core.storage import Storage
 
@@ -72,9 +72,17 @@ def stored_clusters(
             code="ComparisonNotSucceeded",
         )
     after = snapshots.get(session, comparison.after_id)
-    found = change_clusters.read(
-        storage, change_clusters.clusters_key(after.storage_prefix, comparison.id)
-    )
+    job = session.get(Job, comparison.job_id)
+    found = None
+    if job is not None:  # the attempt that succeeded published them
+        key = change_clusters.clusters_key(
+            after.storage_prefix, comparison.id, job.id, job.attempts
+        )
+        found = change_clusters.read(storage, key)
+    if found is None:  # made before attempts had folders
+        found = change_clusters.read(
+            storage, change_clusters.clusters_key(after.storage_prefix, comparison.id)
+        )
     if found is None:
         raise Conflict(
             f"comparison {comparison.id} was made before cluster points were kept; run it "

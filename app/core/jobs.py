@@ -58,6 +58,12 @@ def create(
     return job
 
 
+def attempt_folder(root: str, job_id: str, attempt: int) -> str:
+    """The folder below ``root`` where attempt ``attempt`` of job ``job_id`` publishes its
+    files (workers.runner.publish), so attempts never write to each other's keys."""
+    return f"{root}/{job_id}-{attempt}"
+
+
 def get(session: Session, job_id: str) -> Job:
     job = session.get(Job, job_id)
     if job is None:

@@ -1,9 +1,8 @@
 """The comparison job keeps its change clusters' points for the console
-(workers.comparison._store_clusters → app.core.change_clusters)."""
+(workers.comparison.clusters_npz → app.core.change_clusters)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -30,11 +29,6 @@ def cluster(cluster_id: int, side: str, points: np.ndarray) -> ClusterResult:
     )
 
 
-@dataclass
-class Ctx:
-    storage: LocalStorage
-
-
 def test_every_cluster_is_kept_with_its_change_and_at_most_20000_points(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     now = cluster(4, "added", rng.normal(size=(25_000, 3)))
@@ -50,9 +44,9 @@ def test_every_cluster_is_kept_with_its_change_and_at_most_20000_points(tmp_path
         removed_distances_m=np.zeros(0),
     )
     storage = LocalStorage(tmp_path)
-    key = change_clusters.clusters_key("snapshots/s-2", "c-1")
-    comparison._store_clusters(Ctx(storage), key, result)  # type: ignore[arg-type]
-    assert key == "snapshots/s-2/comparisons/c-1/clusters.npz"
+    key = change_clusters.clusters_key("snapshots/s-2", "c-1", "j-1", 2)
+    storage.write_bytes(key, comparison.clusters_npz(result))
+    assert key == "snapshots/s-2/comparisons/c-1/j-1-2/clusters.npz"
     stored = {c.id: c for c in change_clusters.read(storage, key) or []}
     assert set(stored) == {4, 5, 6}
     assert (stored[4].side, stored[4].change_id, stored[4].n_points) == ("added", "m-1", 25_000)

@@ -6,22 +6,31 @@ what was published. Production glue, fake pipeline, local storage (PostgreSQL an
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import open3d as o3d
 import pytest
 from fastapi.testclient import TestClient
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.core import jobs
+from app.core import change_clusters, jobs
 from app.core.enums import JobState, ObjectState
-from app.core.models import Job, LibraryObject, Snapshot
+from app.core.models import Comparison, Job, LibraryObject, Snapshot
 from app.core.settings import get_settings
 from app.core.storage import LocalStorage
 from tests.app.conftest import Keys, SentTasks
-from tests.app.core.test_twin_order import make_env, snapshot_job, upload
+from tests.app.core.test_twin_order import (
+    SCENES,
+    make_env,
+    queued_comparisons,
+    snapshot_job,
+    upload,
+)
 from tests.workers import fake_pipeline
+from workers import comparison as comparison_glue
 from workers import objects as object_glue
 from workers import snapshot as snapshot_glue
 from workers.runner import JobContext, run_job, unpublish
@@ -82,6 +91,25 @@ def transfers(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     return log
 
 
+def losing_first_attempt(
+    factory: sessionmaker[Session],
+    job_id: str,
+    compute: Callable[[JobContext], Any],
+    run: Callable[[str], str],
+) -> Callable[[JobContext], Any]:
+    """``compute`` as attempt 1, after which the job is requeued (as the sweeper does after a
+    heartbeat timeout) and ``run`` takes it to the end as attempt 2."""
+
+    def stale(ctx: JobContext) -> Any:
+        result = compute(ctx)
+        with factory.begin() as s:
+            assert jobs.requeue(s, job_id, 1)
+        assert run(job_id) == "succeeded"
+        return result
+
+    return stale
+
+
 def test_the_snapshot_job_publishes_before_its_transaction(
     uploaded: tuple[str, str],
     session_factory: sessionmaker[Session],
@@ -112,15 +140,13 @@ def test_a_stale_attempt_leaves_the_winners_files_alone_and_nothing_behind(
     snap_id, job_id = uploaded
     root = f"{row(session_factory, Snapshot, snap_id).storage_prefix}/reconstruction"
 
-    def stale_compute(ctx: JobContext) -> Any:
+    def compute(ctx: JobContext) -> Any:
         outcome = snapshot_glue._compute(ctx)
         assert storage.path(f"{root}/{job_id}-1/cloud.ply").is_file()
-        with session_factory.begin() as s:
-            assert jobs.requeue(s, job_id, 1)
-        assert snapshot_glue.run(job_id) == "succeeded"
         return outcome
 
-    assert run_job(job_id, stale_compute, snapshot_glue._persist, unpublish) == "lost"
+    stale = losing_first_attempt(session_factory, job_id, compute, snapshot_glue.run)
+    assert run_job(job_id, stale, snapshot_glue._persist, unpublish) == "lost"
     snap = row(session_factory, Snapshot, snap_id)
     assert snap.pointcloud_key == f"{root}/{job_id}-2/cloud.ply"
     assert storage.path(snap.pointcloud_key).is_file()
@@ -128,6 +154,37 @@ def test_a_stale_attempt_leaves_the_winners_files_alone_and_nothing_behind(
     assert published_folders(storage, root) == [f"{job_id}-2"]
     job = row(session_factory, Job, job_id)
     assert (job.state, job.attempts) == (JobState.succeeded, 2)
+
+
+def test_a_stale_comparison_attempt_leaves_the_winners_clusters(
+    client: TestClient,
+    keys: Keys,
+    session_factory: sessionmaker[Session],
+    sent_tasks: SentTasks,
+    storage: LocalStorage,
+) -> None:
+    """The change clusters' points (whose change ids are new at each attempt) are served
+    from the folder of the attempt that succeeded; a stale attempt's are removed."""
+    env_id = make_env(client, keys)
+    for scene in SCENES[:2]:
+        snap_id = upload(client, keys, env_id, scene)
+        assert snapshot_glue.run(snapshot_job(session_factory, snap_id)) == "succeeded"
+    [(_, job_id)] = queued_comparisons(session_factory)
+
+    stale = losing_first_attempt(
+        session_factory, job_id, comparison_glue._compute, comparison_glue.run
+    )
+    assert run_job(job_id, stale, comparison_glue._persist, unpublish) == "lost"
+    with session_factory() as s:
+        comparison = s.scalars(select(Comparison).where(Comparison.job_id == job_id)).one()
+        folder = change_clusters.comparison_folder(
+            s.get_one(Snapshot, comparison.after_id).storage_prefix, comparison.id
+        )
+    assert published_folders(storage, folder) == [f"{job_id}-2"]
+    assert not storage.exists(f"{folder}/{change_clusters.FILE}")  # nor the old place
+    # served from the winner's folder (the fake comparison finds no cluster)
+    r = client.get(f"/v1/comparisons/{comparison.id}/clusters", headers=keys.headers("read"))
+    assert r.status_code == 200 and r.json() == {"clusters": []}, r.text
 
 
 def test_a_failed_persist_removes_what_was_published(
@@ -172,14 +229,8 @@ def test_the_object_job_publishes_its_artefacts_before_its_transaction(
     object_id, job_id = r.json()["id"], r.json()["job"]["id"]
     root = object_glue.artifacts_root(object_id)
 
-    def stale_compute(ctx: JobContext) -> Any:
-        prepared = object_glue._compute(ctx)
-        with session_factory.begin() as s:
-            assert jobs.requeue(s, job_id, 1)
-        assert object_glue.run(job_id) == "succeeded"
-        return prepared
-
-    assert run_job(job_id, stale_compute, object_glue._persist, unpublish) == "lost"
+    stale = losing_first_attempt(session_factory, job_id, object_glue._compute, object_glue.run)
+    assert run_job(job_id, stale, object_glue._persist, unpublish) == "lost"
     # each attempt moved its folder in before its final transaction began
     assert transfers == [f"{root}/{job_id}-1", f"{root}/{job_id}-2", "finish", "finish"]
     obj = row(session_factory, LibraryObject, object_id)

@@ -197,6 +197,125 @@ def run_child(
     return row
 
 
+def _tree_rss_mib(root_pid: int) -> tuple[float, float]:
+    """(largest process, whole tree) resident memory in MiB of ``root_pid`` and every
+    descendant, read from /proc; processes that end while read are skipped."""
+    parent: dict[int, int] = {}
+    rss: dict[int, float] = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+            status = (stat.parent / "status").read_text()
+        except OSError:
+            continue
+        parent[int(stat.parent.name)] = int(fields[1])
+        line = next((x for x in status.splitlines() if x.startswith("VmRSS:")), None)
+        rss[int(stat.parent.name)] = int(line.split()[1]) / 1024 if line else 0.0
+    tree, frontier = {root_pid}, [root_pid]
+    while frontier:
+        kids = [pid for pid, ppid in parent.items() if ppid in frontier and pid not in tree]
+        tree.update(kids)
+        frontier = kids
+    sizes = [rss.get(pid, 0.0) for pid in tree]
+    return max(sizes), sum(sizes)
+
+
+def run_service(name: str, master: Path) -> dict[str, Any]:
+    """Upload ``master``'s before capture (all its photos, at its size) to the embedded
+    service (``twindelta serve``: SQLite, local folder, one CPU worker) as a capture station
+    does (tar, resumable upload) and wait for the snapshot job: seconds from the start of the
+    upload to the fused cloud recorded, the service tree's peak RSS (sampled every 0.5 s) and
+    the recorded cloud scored against the true surfaces."""
+    import tempfile
+    import threading
+
+    import httpx
+
+    from app.client import Client, check, embedded_service, poll_job
+    from bench.reconstruct_bench import visible_surface_samples
+    from workers.pipeline.reconstruct.fusion import read_ply
+    from workers.pipeline.synth import load_true_surfaces
+
+    capture_dir = master / "before"
+    raw = json.loads((capture_dir / "cameras.json").read_text())
+    admin = "td_bench_admin_key_0123456789abcdef"
+    peak = {"process_mib": 0.0, "tree_mib": 0.0}
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.wait(0.5):
+            largest, total = _tree_rss_mib(os.getpid())
+            peak["process_mib"] = max(peak["process_mib"], largest)
+            peak["tree_mib"] = max(peak["tree_mib"], total)
+
+    load = os.getloadavg()[0]
+    with (
+        tempfile.TemporaryDirectory(prefix="capture-service-") as tmp,
+        embedded_service(Path(tmp) / "data", admin, Path(tmp) / "serve.log") as client,
+    ):
+        env = check(
+            client.post(
+                "/v1/environments",
+                json={
+                    "name": name,
+                    "classes": (capture_dir / "classes.txt").read_text().split(),
+                    "reference": json.loads((master / "reference.json").read_text()),
+                },
+            ),
+            201,
+        )
+        sampler = threading.Thread(target=sample, daemon=True)
+        sampler.start()
+        t = time.perf_counter()
+        with Client(str(client.base_url), admin) as station:
+            uploaded = station.upload_capture(env["id"], capture_dir, workdir=Path(tmp))
+        upload_s = time.perf_counter() - t
+        job = poll_job(client, uploaded.job, name, timeout_s=3 * 3600, quiet=True)
+        total_s = time.perf_counter() - t
+        stop.set()
+        sampler.join()
+        snap = check(client.get(f"/v1/snapshots/{uploaded.snapshot}"), 200)
+        cloud_file = Path(tmp) / "cloud.ply"
+        with client.stream(
+            "GET", f"/v1/snapshots/{uploaded.snapshot}/pointcloud", timeout=httpx.Timeout(600)
+        ) as resp:
+            resp.raise_for_status()
+            with cloud_file.open("wb") as fh:
+                for chunk in resp.iter_bytes(1 << 20):
+                    fh.write(chunk)
+        cloud, _ = read_ply(cloud_file)
+    if job["state"] != "succeeded":
+        raise RuntimeError(f"{name}: snapshot job {job['state']}: {job.get('error')}")
+    meshes = load_true_surfaces(master, "before")
+    width, height = raw["intrinsics"]["width"], raw["intrinsics"]["height"]
+    truth = json.loads((master / "ground_truth.json").read_text())
+    seen_from = {"intrinsics": raw["intrinsics"], "poses": truth["camera_poses"]["before"]}
+    quality = snap["quality"]
+    row: dict[str, Any] = {
+        "photos": len(list((capture_dir / "images").iterdir())),
+        "size": f"{width}x{height}",
+        "megapixels": round(width * height / 1e6, 2),
+        "load_average_1m": [round(load, 2), round(os.getloadavg()[0], 2)],
+        "upload_s": round(upload_s, 1),
+        "upload_to_cloud_s": round(total_s, 1),
+        "job_s": _seconds_between(job["started_at"], job["finished_at"]),
+        "queued_s": _seconds_between(job["created_at"], job["started_at"]),
+        "peak_rss_mib": round(peak["process_mib"]),
+        "peak_rss_service_tree_mib": round(peak["tree_mib"]),
+        "images_registered": quality.get("images_registered"),
+        "timings_s": quality.get("timings_s"),
+        **cloud_scores(cloud, meshes, visible_surface_samples(meshes, seen_from).points),
+    }
+    print(name, json.dumps(row), flush=True)
+    return row
+
+
+def _seconds_between(start: str, end: str) -> float:
+    from datetime import datetime
+
+    return round((datetime.fromisoformat(end) - datetime.fromisoformat(start)).total_seconds(), 1)
+
+
 def slope(xs: list[float], ys: list[float]) -> float | None:
     """Least-squares slope of log(y) on log(x); None with fewer than two points."""
     if len(xs) < 2:
@@ -250,12 +369,14 @@ def plan(
         )
     if "target" in series:
         runs.append(("target_100_12MP", 100, "12MP", target, {}))
+    if "service" in series:  # through the HTTP API and a worker: upload to fused cloud
+        runs.append(("service_100_12MP", 100, "12MP", target, {}))
     return runs
 
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("--series", default="photos,resolution,policy,matching,target")
+    parser.add_argument("--series", default="photos,resolution,policy,matching,target,service")
     parser.add_argument("--only", default="", help="comma-separated run names (a subset)")
     parser.add_argument("--quick", action="store_true", help="30 photos at 1 MP only (a smoke run)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "capture.json")
@@ -274,7 +395,11 @@ def main() -> int:
     for name, n, size, (views, master_size), overrides in plan(args.series.split(","), args.quick):
         if only and name not in only:
             continue
-        runs[name] = run_child(name, n, size, master_capture(views, master_size), overrides)
+        master = master_capture(views, master_size)
+        if name.startswith("service_"):
+            runs[name] = run_service(name, master)
+        else:
+            runs[name] = run_child(name, n, size, master, overrides)
         results["growth"] = {
             "photos_at_1MP": exponents(runs, "photos_", "photos"),
             "pixels_at_30_photos": exponents(runs, "resolution_30_", "megapixels"),

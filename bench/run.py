@@ -181,11 +181,14 @@ def _console(d: dict[str, Any]) -> dict[str, Any]:
 def _capture(d: dict[str, Any]) -> dict[str, Any]:
     runs = d.get("runs", {})
     target = runs.get("target_100_12MP", {})
+    service = runs.get("service_100_12MP", {})
     return {
         "growth": d.get("growth"),
         "target_100_12MP_s": target.get("reconstruct_s"),
         "target_median_m": target.get("distance_median_m"),
         "target_completeness_1cm": target.get("completeness_1cm"),
+        "upload_to_cloud_100_12MP_s": service.get("upload_to_cloud_s"),
+        "upload_to_cloud_peak_rss_mib": service.get("peak_rss_mib"),
     }
 
 

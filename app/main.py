@@ -4,6 +4,7 @@ lifespan (bootstrap admin key)."""
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -33,6 +34,7 @@ from app.api.routes import (
     webhooks,
 )
 from app.core import auth, ingest
+from app.core import uploads as resumable
 from app.core.db import get_session_factory
 from app.core.errors import DomainError
 from app.core.settings import get_settings
@@ -58,7 +60,9 @@ async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
             if auth.bootstrap_admin_key(session, settings.bootstrap_admin_key):
                 log.info("created the bootstrap admin key")
     # Staging folders of uploads whose API process died (killed mid-upload) go at once.
-    ingest.sweep_staging(open_storage(settings))
+    storage = open_storage(settings)
+    ingest.sweep_staging(storage)
+    resumable.sweep_spools(storage, time.time() - settings.stale_files_after_s)
     yield
 
 

@@ -2,11 +2,14 @@
 ``retention_interval_s``): the retention policy from the settings, then the cleanup of what
 killed processes left (app/core/retention.py); and (``maintenance.uploads``, every
 ``upload_sweep_interval_s``) expired resumable uploads (app/core/uploads.py). Files go only
-after each transaction commits."""
+after each transaction commits. Every worker process also sweeps its own host's job work
+folders when it starts (:func:`sweep_own_scratch`): no other host sees them."""
 
 from __future__ import annotations
 
 import logging
+
+from celery.signals import worker_ready
 
 from app.core import retention as policy
 from app.core import uploads
@@ -42,3 +45,20 @@ def expire_uploads() -> dict[str, int]:
     if any(counts.values()):
         log.info("uploads: %s", counts)
     return counts
+
+
+@worker_ready.connect
+def sweep_own_scratch(**_: object) -> int:
+    """At a worker's start, remove the work folders its host's killed workers left
+    (:func:`policy.sweep_work`); a database that is not up yet only skips it. Returns how
+    many."""
+    storage = open_storage(get_settings())
+    try:
+        with transaction() as session:
+            removed = policy.sweep_work(session, storage)
+    except Exception:  # the start must not fail on a sweep; the next start tries again
+        log.warning("could not sweep this host's work folders at start", exc_info=True)
+        return 0
+    if removed:
+        log.info("removed %d work folders of jobs that ended", removed)
+    return removed

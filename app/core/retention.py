@@ -423,17 +423,7 @@ def cleanup_files(
     """
     now = time.time() if now is None else now
     counts = {"work": 0, "staging": 0, "partial": 0, "snapshots": 0, "objects": 0}
-    work = storage.scratch_path(".work")
-    names = _children(work)
-    if names:
-        states: dict[str, str] = {}
-        for chunk in _chunks(names, 500):
-            states.update(session.execute(select(Job.id, Job.state).where(Job.id.in_(chunk))).all())
-        for name in names:
-            state = states.get(name)
-            if state is None or JobState(state).is_final:
-                shutil.rmtree(work / name, ignore_errors=True)
-                counts["work"] += 1
+    counts["work"] = sweep_work(session, storage)
     counts["staging"] = ingest.sweep_staging(storage)
     _cleanup_snapshot_folders(session, storage, max_age_s, now, counts)
     newest = storage.folders("objects")
@@ -453,6 +443,24 @@ def cleanup_files(
     # write_stream's unfinished writes (models)
     counts["partial"] = storage.remove_partial("objects", now - max_age_s)
     return counts
+
+
+def sweep_work(session: Session, storage: Storage) -> int:
+    """Remove this host's ``.work/<job>`` scratch folders of jobs that are final or unknown
+    (a worker killed before it cleaned up; queued and running jobs keep theirs, a requeued
+    job resumes from it); returns how many."""
+    work = storage.scratch_path(".work")
+    names = _children(work)
+    states: dict[str, str] = {}
+    for chunk in _chunks(names, 500):
+        states.update(session.execute(select(Job.id, Job.state).where(Job.id.in_(chunk))).all())
+    removed = 0
+    for name in names:
+        state = states.get(name)
+        if state is None or JobState(state).is_final:
+            shutil.rmtree(work / name, ignore_errors=True)
+            removed += 1
+    return removed
 
 
 def _cleanup_snapshot_folders(

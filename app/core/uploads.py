@@ -589,16 +589,26 @@ def finish(
                 row = session.get(ResumableUpload, upload_id, with_for_update=True)
                 if row is None:
                     raise NotFound(f"upload {upload_id} was deleted while it was ingested")
+                if row.state != UploadState.processing:
+                    raise _TakenOver  # this request stalled; another one finished it
                 row.state, row.completed_at = UploadState.completed, utcnow()
                 row.snapshot_id, row.job_id = result.snapshot.id, result.job.id
                 retention.delete_after_commit(session, storage, row.storage_key)
         return row
+    except _TakenOver:
+        with factory.begin() as session:
+            ended = session.get(ResumableUpload, upload_id)
+        if ended is None:
+            raise NotFound(f"upload {upload_id} not found") from None
+        return ended
     except DomainError as exc:
         if exc.status_code >= 500:  # a full disk: not the archive's fault, keep its bytes
             _back_to_receiving(factory, upload_id)
             raise
         with factory.begin() as session:
             row = session.get(ResumableUpload, upload_id, with_for_update=True)
+            if row is not None and row.state == UploadState.completed:
+                return row  # this request stalled and another finished it (its parts gone)
             if row is not None:
                 row.state, row.completed_at = UploadState.failed, utcnow()
                 row.error_status, row.error_code = exc.status_code, exc.code
@@ -608,6 +618,11 @@ def finish(
     except BaseException:
         _back_to_receiving(factory, upload_id)
         raise
+
+
+class _TakenOver(Exception):
+    """The finishing request found its upload ended by another that took over after its
+    heartbeat went stale: its own snapshot is rolled back."""
 
 
 def _back_to_receiving(factory: sessionmaker[Session], upload_id: str) -> None:
@@ -682,6 +697,22 @@ def expire(
             counts["uploads_orphaned"] += 1
     counts["uploads_orphaned"] += storage.remove_partial(FOLDER, cutoff)
     return counts
+
+
+def sweep_spools(storage: Storage, older_than: float) -> int:
+    """Remove the PATCH spool files (``uploads/<id>/.<part>.part``) in this host's scratch
+    last written before ``older_than`` (s since the epoch): those of requests killed with
+    their process. Each API host runs it at start, as no other host sees its scratch.
+    Returns how many."""
+    removed = 0
+    for spool in storage.scratch_path(FOLDER).glob("*/.*.part"):
+        try:
+            if spool.stat().st_mtime < older_than:
+                spool.unlink(missing_ok=True)
+                removed += 1
+        except FileNotFoundError:
+            continue
+    return removed
 
 
 def expires_header(when: datetime) -> str:

@@ -108,3 +108,34 @@ def test_a_cancelled_job_whose_worker_died_ends_cancelled_with_its_subject(
         assert s.scalars(select(Event.type).where(Event.subject == f"jobs/{job_id}")).all() == [
             EventType.job_cancelled
         ]
+
+
+def test_a_worker_sweeps_its_own_hosts_work_folders_at_start(
+    session_factory: sessionmaker[Session], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """worker_ready: the scratch work folders of ended jobs and of jobs with no row go, a
+    running job's stays; a database that is down only skips the sweep."""
+    from app.core import retention
+    from app.core.storage import open_storage
+    from workers import maintenance_tasks
+
+    ended = stale_object_job(session_factory, "ended", attempts=1)
+    running = stale_object_job(session_factory, "running", attempts=1)
+    with session_factory.begin() as s:
+        jobs.get(s, ended).state = JobState.failed
+    storage = open_storage(get_settings())
+    folders = {
+        name: storage.scratch_path(f".work/{job_id}")
+        for name, job_id in (("ended", ended), ("running", running), ("unknown", "no-such-job"))
+    }
+    for folder in folders.values():
+        (folder / "reconstruct").mkdir(parents=True)
+    assert maintenance_tasks.sweep_own_scratch() == 2
+    assert not folders["ended"].exists() and not folders["unknown"].exists()
+    assert (folders["running"] / "reconstruct").is_dir()
+
+    def down(*_: object) -> int:
+        raise ConnectionError("database is starting")
+
+    monkeypatch.setattr(retention, "sweep_work", down)
+    assert maintenance_tasks.sweep_own_scratch() == 0

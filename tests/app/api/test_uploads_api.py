@@ -397,6 +397,55 @@ def test_an_upload_being_ingested_is_423_until_its_heartbeat_stops(
     assert sent_tasks.names() == ["snapshot.process"]
 
 
+@pytest.mark.parametrize("parts_left", [True, False], ids=["reads-on", "parts-gone"])
+def test_a_stalled_finisher_that_was_taken_over_records_nothing(
+    parts_left: bool,
+    client: TestClient,
+    keys: Keys,
+    session_factory: sessionmaker[Session],
+    data_dir: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The finishing request stalls past FINISH_STALE_S before its snapshot; another takes
+    over and finishes. When the first resumes, it answers with the upload as the other
+    recorded it, one snapshot in all: whether it still reads the parts (its host's copies,
+    with S3) and its own snapshot is rolled back, or finds them deleted."""
+    from app.core import ingest
+
+    body = archive()
+    _, row = new_upload(client, keys, session_factory, body)
+    storage = LocalStorage(data_dir / "files")
+    receiver = spooled(storage, row, 0, body)
+    receiver.store(session_factory, get_settings())
+    receiver.close()
+    real, taken_over = ingest.create_snapshot, []
+
+    def stalled(*args: object, **kwargs: object) -> object:
+        if not taken_over:  # the first finisher, before its snapshot: it stalls here
+            taken_over.append(None)
+            with session_factory.begin() as s:
+                stale = s.get(ResumableUpload, row.id)
+                assert stale is not None
+                stale.heartbeat_at = utcnow() - timedelta(seconds=uploads.FINISH_STALE_S + 1)
+            with monkeypatch.context() as m:
+                if parts_left:
+                    m.setattr(uploads.retention, "delete_after_commit", lambda *_: None)
+                taken_over[0] = uploads.finish(
+                    session_factory, session_factory, storage, get_settings(), row.id
+                )
+        return real(*args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(ingest, "create_snapshot", stalled)
+    first = uploads.finish(session_factory, session_factory, storage, get_settings(), row.id)
+    second = taken_over[0]
+    assert second is not None and second.snapshot_id is not None
+    assert first.state == second.state == "completed"
+    assert first.snapshot_id == second.snapshot_id and first.job_id == second.job_id
+    with session_factory() as s:
+        env_snapshots = select(func.count()).select_from(Snapshot)
+        assert s.scalar(env_snapshots.where(Snapshot.environment_id == row.environment_id)) == 1
+
+
 def _killed(*args: object, **kwargs: object) -> object:
     raise RuntimeError("the request died while ingesting")
 

@@ -106,3 +106,23 @@ def test_concurrent_patches_at_one_offset_move_it_once(
             assert (row.offset_bytes, row.parts) == (start, expected)
         folder = tmp_path / "files" / "uploads" / upload.id
         assert sorted(p.name for p in folder.iterdir()) == sorted(expected)
+
+
+def test_sweep_spools_removes_only_old_spool_files_of_this_hosts_scratch(tmp_path: Path) -> None:
+    """A killed request's spool (untouched past the cut-off) goes; a live request's spool
+    and the stored parts stay."""
+    import os
+    import time
+
+    storage = LocalStorage(tmp_path / "files")
+    folder = storage.scratch_path(f"{uploads.FOLDER}/u1")
+    folder.mkdir(parents=True)
+    dead, live, part = folder / ".a.part", folder / ".b.part", folder / f"{0:020d}.n1"
+    for path in (dead, live, part):
+        path.write_bytes(b"x" * 10)
+    hour_ago = time.time() - 3600
+    os.utime(dead, (hour_ago, hour_ago))
+    os.utime(part, (hour_ago, hour_ago))
+    assert uploads.sweep_spools(storage, time.time() - 60) == 1
+    assert not dead.exists() and live.exists() and part.exists()
+    assert uploads.sweep_spools(storage, time.time() - 60) == 0

@@ -38,7 +38,14 @@ from sqlalchemy import create_engine, text
 
 from app.client import free_port, upload_capture
 from bench.loopback import generate_world
-from tests.e2e.conftest import Processes, RedisServer, api_client, poll_job, wait_until
+from tests.e2e.conftest import (
+    Processes,
+    RedisServer,
+    api_client,
+    poll_job,
+    wait_until,
+    worker_ready,
+)
 from workers.demo.evaluate import match_changes
 from workers.pipeline.synth import builtin_models
 from workers.pipeline.synth.shapes import write_model_ply
@@ -101,14 +108,13 @@ class Cluster:
         self.hosts[name] = procs
         return procs
 
-    def worker(self, name: str) -> None:
-        self.host(name).worker(name, "cpu")
-        log = self.tmp_path / f"{name}.log"
-        wait_until(lambda: " ready." in _read(log), 120, f"worker {name}")
-
-
-def _read(path: Path) -> str:
-    return path.read_text(errors="replace") if path.exists() else ""
+    def workers(self, *names: str) -> None:
+        """One CPU worker host per name, started together; returns once every one is ready."""
+        for name in names:
+            self.host(name).worker(name, "cpu")
+        for name in names:
+            log = self.tmp_path / f"{name}.log"
+            wait_until(partial(worker_ready, log), 120, f"worker {name}")
 
 
 @pytest.fixture
@@ -159,8 +165,7 @@ def test_two_worker_hosts_real_pipeline_kill_and_seq_order(
     api.api(port)
     maintenance = cluster.host("maintenance")
     maintenance.worker("beat", "maintenance", "-B", "-s", str(tmp_path / "beat-schedule"))
-    cluster.worker("w1")
-    cluster.worker("w2")
+    cluster.workers("w1", "w2")
     client = api_client(port)
     client.timeout = httpx.Timeout(120)
 
@@ -230,7 +235,7 @@ def test_two_worker_hosts_real_pipeline_kill_and_seq_order(
     assert a1()["worker"] == survivor
 
     # 3. a replacement host joins; B and C run beside A
-    cluster.worker("w3")
+    cluster.workers("w3")
     upload("B")
     upload("C")
 

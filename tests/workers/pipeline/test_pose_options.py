@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import pytest
 
+from app.core import change_clusters
 from app.core.errors import InvalidInput
 from app.core.options import check_environment_options, check_stage_options
 from workers import comparison as comparison_glue
@@ -54,7 +56,7 @@ def test_a_bad_pose_option_is_refused_naming_it(options: dict[str, Any], message
 
 
 def test_the_comparison_job_passes_the_posted_pose_options_to_the_pose_step(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     """workers/comparison.py takes ``pose`` out of the comparison's options (the compare
     stage gets the rest) and hands it to :func:`pose_changes`."""
@@ -70,7 +72,7 @@ def test_the_comparison_job_passes_the_posted_pose_options_to_the_pose_step(
         twin=[],
         classes=["box"],
         models={},
-        clusters_key="snapshots/s/comparisons/c/clusters.npz",
+        folder="snapshots/s/comparisons/c",
     )
     seen: dict[str, Any] = {}
 
@@ -86,10 +88,14 @@ def test_the_comparison_job_passes_the_posted_pose_options_to_the_pose_step(
     monkeypatch.setattr(comparison_glue, "_capture_data", lambda ctx, files: None)
     monkeypatch.setattr(comparison_glue, "compare_snapshots", fake_compare)
     monkeypatch.setattr(comparison_glue, "pose_changes", fake_pose_changes)
+    monkeypatch.setattr(comparison_glue, "clusters_npz", lambda result: b"npz")
     monkeypatch.setattr(
-        comparison_glue, "_store_clusters", lambda ctx, key, result: seen.setdefault("key", key)
+        comparison_glue,
+        "publish",
+        lambda ctx, root, files: seen.setdefault("published", (root, sorted(files))),
     )
-    comparison_glue._compute(SimpleNamespace(progress=lambda stage, fraction: None))  # type: ignore[arg-type]
+    ctx = SimpleNamespace(progress=lambda stage, fraction: None, work_dir=tmp_path)
+    comparison_glue._compute(ctx)  # type: ignore[arg-type]
     assert seen["pose_options"] == {"preset": "fast", "n_seeds": 4}
     assert seen["compare_options"] == options_from_json("thesis", {"cluster_min_points": 40})
-    assert seen["key"] == inputs.clusters_key
+    assert seen["published"] == (inputs.folder, [change_clusters.FILE])

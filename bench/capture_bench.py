@@ -162,12 +162,17 @@ def cloud_scores(cloud: np.ndarray, meshes: dict[str, Any], visible: np.ndarray)
     }
 
 
+def work_folder(name: str) -> Path:
+    """Where run ``name`` leaves its work (the child's reconstruction, the service's cloud)."""
+    return Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench")) / "capture" / name
+
+
 def run_child(
     name: str, n_photos: int, size: str, master: Path, overrides: dict[str, Any]
 ) -> dict[str, Any]:
     """One run in a fresh child process (its own peak RSS); the run's row of capture.json."""
     folder = capture(master, n_photos, size)
-    work = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench")) / "capture" / name
+    work = work_folder(name)
     spec = json.dumps(
         {"folder": str(folder), "master": str(master), "work": str(work), "overrides": overrides}
     )
@@ -275,7 +280,8 @@ def run_service(name: str, master: Path) -> dict[str, Any]:
         stop.set()
         sampler.join()
         snap = check(client.get(f"/v1/snapshots/{uploaded.snapshot}"), 200)
-        cloud_file = Path(tmp) / "cloud.ply"
+        cloud_file = work_folder(name) / "cloud.ply"  # kept, as run_child's work folder is
+        cloud_file.parent.mkdir(parents=True, exist_ok=True)
         with client.stream(
             "GET", f"/v1/snapshots/{uploaded.snapshot}/pointcloud", timeout=httpx.Timeout(600)
         ) as resp:

@@ -205,17 +205,17 @@ def run_child(
 def _tree_rss_mib(root_pid: int) -> tuple[float, float]:
     """(largest process, whole tree) resident memory in MiB of ``root_pid`` and every
     descendant, read from /proc; processes that end while read are skipped."""
+    from bench.upload_bench import proc_status_kb
+
     parent: dict[int, int] = {}
     rss: dict[int, float] = {}
     for stat in Path("/proc").glob("[0-9]*/stat"):
+        pid = int(stat.parent.name)
         try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-            status = (stat.parent / "status").read_text()
-        except OSError:
+            parent[pid] = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+            rss[pid] = proc_status_kb(pid, "VmRSS") / 1024
+        except (OSError, KeyError):  # ended, or a kernel thread (no VmRSS)
             continue
-        parent[int(stat.parent.name)] = int(fields[1])
-        line = next((x for x in status.splitlines() if x.startswith("VmRSS:")), None)
-        rss[int(stat.parent.name)] = int(line.split()[1]) / 1024 if line else 0.0
     tree, frontier = {root_pid}, [root_pid]
     while frontier:
         kids = [pid for pid, ppid in parent.items() if ppid in frontier and pid not in tree]

@@ -243,19 +243,25 @@ class LocalStorage(Storage):
 
     def remove_partial(self, prefix: str, older_than: float) -> int:
         """write_stream's ``.<name>.<hex>.part`` files."""
-        folder = self.path(prefix)
-        removed = 0
-        for part in folder.glob("*/**/.*.part") if folder.is_dir() else ():
-            try:
-                if part.stat().st_mtime < older_than:
-                    part.unlink(missing_ok=True)
-                    removed += 1
-            except FileNotFoundError:
-                continue
-        return removed
+        return remove_older(self.path(prefix), "*/**/.*.part", older_than)
 
     def check(self) -> None:
         self.tmp_dir().rmdir()
+
+
+def remove_older(folder: Path, pattern: str, older_than: float) -> int:
+    """Delete the files below ``folder`` matching the glob ``pattern`` last written before
+    ``older_than`` (s since the epoch); returns how many. A missing folder or a file gone
+    meanwhile is skipped."""
+    removed = 0
+    for path in folder.glob(pattern) if folder.is_dir() else ():
+        try:
+            if path.stat().st_mtime < older_than:
+                path.unlink(missing_ok=True)
+                removed += 1
+        except FileNotFoundError:
+            continue
+    return removed
 
 
 def _remove(path: Path) -> None:

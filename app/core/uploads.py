@@ -60,7 +60,7 @@ from app.core.errors import (
 from app.core.ingest.common import _disk_full, _no_space
 from app.core.models import ResumableUpload, new_id, utcnow
 from app.core.settings import Settings
-from app.core.storage import CHUNK_BYTES, Storage
+from app.core.storage import CHUNK_BYTES, Storage, remove_older
 
 log = logging.getLogger(__name__)
 
@@ -704,15 +704,7 @@ def sweep_spools(storage: Storage, older_than: float) -> int:
     last written before ``older_than`` (s since the epoch): those of requests killed with
     their process. Each API host runs it at start, as no other host sees its scratch.
     Returns how many."""
-    removed = 0
-    for spool in storage.scratch_path(FOLDER).glob("*/.*.part"):
-        try:
-            if spool.stat().st_mtime < older_than:
-                spool.unlink(missing_ok=True)
-                removed += 1
-        except FileNotFoundError:
-            continue
-    return removed
+    return remove_older(storage.scratch_path(FOLDER), "*/.*.part", older_than)
 
 
 def expires_header(when: datetime) -> str:

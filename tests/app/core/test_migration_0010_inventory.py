@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from alembic import command
 from alembic.config import Config
-from sqlalchemy import inspect, text
+from sqlalchemy import Engine, inspect, text
 
 from app.core.db import make_engine
 from tests.app.conftest import create_pg_database, drop_pg_database
@@ -29,10 +29,12 @@ def url(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[str]:
     drop_pg_database(name)
 
 
-def test_0010_upgrade_and_downgrade(url: str) -> None:
+def at_revision_with_environment(url: str, revision: str) -> tuple[Config, Engine]:
+    """The database at ``url`` upgraded to ``revision`` with one environment ``e``: the
+    Alembic config for further steps and an engine on it."""
     config = Config(str(REPO_ROOT / "alembic.ini"))
     config.attributes["url"] = url
-    command.upgrade(config, "0009")
+    command.upgrade(config, revision)
     engine = make_engine(url)
     with engine.begin() as conn:
         conn.execute(
@@ -42,6 +44,12 @@ def test_0010_upgrade_and_downgrade(url: str) -> None:
             ),
             {"now": NOW},
         )
+    return config, engine
+
+
+def test_0010_upgrade_and_downgrade(url: str) -> None:
+    config, engine = at_revision_with_environment(url, "0009")
+    with engine.begin() as conn:
         conn.execute(
             text(
                 "INSERT INTO snapshots (id, environment_id, seq, state, source, storage_prefix,"

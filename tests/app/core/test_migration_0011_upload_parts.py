@@ -8,30 +8,21 @@ from __future__ import annotations
 from datetime import UTC, datetime
 
 from alembic import command
-from alembic.config import Config
 from sqlalchemy import inspect, text
 
 from app.core.db import make_engine
 from tests.app.core.test_migration_0009 import NOW, count
-from tests.app.core.test_migration_0010_inventory import url  # noqa: F401 (the fixture)
-from tests.conftest import REPO_ROOT
+from tests.app.core.test_migration_0010_inventory import (  # noqa: F401 (the fixture)
+    at_revision_with_environment,
+    url,
+)
 
 LATER = "2099-01-01 00:00:00"
 
 
 def test_0011_upgrade_expires_uploads_under_way_and_downgrades(url: str) -> None:  # noqa: F811
-    config = Config(str(REPO_ROOT / "alembic.ini"))
-    config.attributes["url"] = url
-    command.upgrade(config, "0010")
-    engine = make_engine(url)
+    config, engine = at_revision_with_environment(url, "0010")
     with engine.begin() as conn:
-        conn.execute(
-            text(
-                "INSERT INTO environments (id, name, classes, reference, options, created_at)"
-                " VALUES ('e', 'cell', '[\"drill\"]', NULL, '{}', :now)"
-            ),
-            {"now": NOW},
-        )
         for upload_id, state in (("u1", "receiving"), ("u2", "processing"), ("u3", "completed")):
             conn.execute(
                 text(

@@ -275,6 +275,48 @@ def test_verified_plane_depths_fill_the_floor_and_not_the_box(scene: tuple) -> N
     assert stats["pixels_filled"] == sum(int((f > 0).sum() - (s > 0).sum()) for f, s in pairs)
 
 
+def test_a_rejected_plane_in_front_does_not_hide_the_floor_behind_it(scene: tuple) -> None:
+    """A spurious level plane 0.6 m up (as RANSAC can fit through the tops of objects) lies
+    in front of the floor in every view: each floor pixel's ray meets it first and the
+    photos reject its depths (all but < 2 % of the floor's pixels, the quarter-scale ZNCC's
+    chance matches), so the floor behind it fills ≥ 50 % of the floor's pixels within 1 mm
+    of the truth; the box < 1 %. The ghost's chance matches agree with one another (one
+    plane), so after the consistency filter 0.07 % of the points lie on it (< 0.2 %)."""
+    views, depths, index = scene
+    rng = np.random.default_rng(4)
+    floor_pts = np.c_[rng.uniform(-1.4, 1.4, (4000, 2)), np.zeros(4000)]
+    ghost_pts = np.c_[rng.uniform(-1.4, 1.4, (2000, 2)), np.full(2000, 0.6)]
+    planes = detect_planes(np.concatenate([floor_pts, ghost_pts]), OPTS)
+    assert len(planes) == 2 and abs(planes[1].offset_m) > 0.59
+    _, nearest = plane_depths(views[0], planes)
+    assert (nearest[index[0] == 0] == 1).mean() > 0.9  # the ghost is in front of the floor
+    start = [np.zeros_like(d) for d in depths]
+    fill = fill_depths(views, start, planes, OPTS)
+    floor_px = floor_ok = floor_bad = box_px = box_bad = 0
+    for i, f in enumerate(fill.depths):
+        floor, box, got = index[i] == 0, index[i] >= 1, f > 0
+        right = np.abs(f - depths[i]) < 0.001
+        floor_px += int(floor.sum())
+        floor_ok += int((floor & got & right).sum())
+        floor_bad += int((floor & got & ~right).sum())
+        box_px, box_bad = box_px + int(box.sum()), box_bad + int((box & got).sum())
+    assert floor_ok > 0.5 * floor_px
+    assert floor_bad < 0.02 * floor_px
+    assert box_bad < 0.01 * box_px
+    kept = consistent_points_split(
+        views,
+        fill.depths,
+        _ring_neighbours(len(views)),
+        replace(OPTS, point_stride=1),
+        verified=fill.verified(),
+    )
+    pts = kept.points_env
+    q = np.abs(pts - [0.0, 0.0, 0.2]) - 0.2
+    to_cube = np.abs(np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0))
+    assert len(pts) > 100_000
+    assert np.mean(np.minimum(np.abs(pts[:, 2]), to_cube) > 0.02) < 0.002
+
+
 def test_no_plane_depth_nearer_than_planar_min_depth(scene: tuple) -> None:
     """With planar_min_depth_m = 1.6 m only floor pixels beyond it take plane depths."""
     views, depths, _ = scene

@@ -465,12 +465,14 @@ def plane_depths(
     min_cos_incidence: float = 0.1,
     k_matrix: FloatArray | None = None,
     size: tuple[int, int] | None = None,
+    beyond: F32 | None = None,
 ) -> tuple[F32, NDArray[np.int16]]:
     """Camera depth (H, W) float32 metres (0 = no hit) of the nearest plane each pixel's ray
     hits inside that plane's extent, and which plane (int16, −1 = none). The grid is the
     view's own unless ``k_matrix`` (3, 3) and ``size`` (W, H) give a rescaled one. Hits
     where the ray meets the plane at more than arccos(``min_cos_incidence``) from its normal
-    are ignored (grazing: the depth is too sensitive to the plane).
+    are ignored (grazing: the depth is too sensitive to the plane), and so are hits not
+    farther than ``beyond`` (H, W) float32 metres where given (the planes behind those).
 
     With r = K⁻¹ (x, y, 1) and R, C the view's env_from_cam rotation and centre, the ray
     C + z R r meets n·X = d at camera depth z = (d − n·C) / ((Rᵀn)·r).
@@ -485,6 +487,8 @@ def plane_depths(
     for idx, p in enumerate(planes):
         z, denom = _ray_depth(rays, view.env_from_cam, p)
         ok = (z > 0) & (np.abs(denom) >= min_cos_incidence * length) & (z < depth)
+        if beyond is not None:
+            ok &= z > beyond
         ys, xs = np.nonzero(ok)
         if len(ys) == 0:
             continue
@@ -587,9 +591,9 @@ def _scaled_views(views: list[DenseView], depths: list[F32], scale: float) -> _S
 @dataclass(frozen=True)
 class _Candidates:
     """View ``index``'s candidate plane depths on the ZNCC grid: ``depth`` (h, w) float32
-    metres of the nearest plane inside its extent (0: none), ``label`` (h, w) int16 which
-    plane (−1: none), ``mask`` (h, w) bool the pixels that may take it (plane depth ≥
-    ``planar_min_depth_m``, own depth none or ≥ ``far_min_depth_m``)."""
+    metres of the nearest plane inside its extent beyond the depths already tried (0: none),
+    ``label`` (h, w) int16 which plane (−1: none), ``mask`` (h, w) bool the pixels that may
+    take it (plane depth ≥ ``planar_min_depth_m``, own depth none or ≥ ``far_min_depth_m``)."""
 
     index: int
     depth: F32
@@ -598,10 +602,17 @@ class _Candidates:
 
 
 def _candidates(
-    i: int, view: DenseView, planes: list[Plane], scaled: _ScaledViews, options: ReconstructOptions
+    i: int,
+    view: DenseView,
+    planes: list[Plane],
+    scaled: _ScaledViews,
+    options: ReconstructOptions,
+    beyond: F32,
 ) -> _Candidates:
     hs, ws = scaled.grays[i].shape
-    plane_s, label_s = plane_depths(view, planes, k_matrix=scaled.k_matrices[i], size=(ws, hs))
+    plane_s, label_s = plane_depths(
+        view, planes, k_matrix=scaled.k_matrices[i], size=(ws, hs), beyond=beyond
+    )
     own_s = scaled.depths[i]
     cand_s = (plane_s >= options.planar_min_depth_m) & (
         (own_s <= 0) | (own_s >= options.far_min_depth_m)
@@ -769,7 +780,8 @@ def fill_depths(
     ≥ ``planar_min_ncc`` and exceeds the mean ZNCC at depths × (1 ± ``planar_offset_rel``)
     by ≥ ``planar_ncc_margin``, the reference window has texture (std ≥ 1 grey level), and
     no own SGBM depth nearer than the plane by > 5 % lies within ``planar_ncc_window``
-    pixels. A far SGBM depth that disagrees with an accepted plane depth by more than
+    pixels. A pixel whose nearest plane is rejected tries the planes behind it in turn.
+    A far SGBM depth that disagrees with an accepted plane depth by more than
     ``far_consistency_rel_tol`` is replaced; one that agrees is kept, the plane depth its
     ``fallback``. Raises ShapeError on mismatched inputs.
     """
@@ -809,14 +821,31 @@ def _fill_view(
     options: ReconstructOptions,
 ) -> _ViewFill:
     """View ``i``'s (H, W) ``depth`` with its verified plane depths laid in (see
-    :func:`fill_depths`)."""
-    cands = _candidates(i, views[i], planes, scaled, options)
-    checked_by = _choose_views(cands, views, scaled, options) if cands.mask.any() else ()
-    if not cands.mask.any() or not checked_by:
-        return _ViewFill.unchanged(depth, checked_by)
-    accept_s = _accepted(cands, views, scaled, checked_by, options)
-    label_acc = np.where(accept_s, cands.label, -1).astype(np.int16)
-    return _lay_in(views[i], depth, planes, label_acc, checked_by, options)
+    :func:`fill_depths`). A pixel whose nearest plane the photos reject (or which is nearer
+    than ``planar_min_depth_m``) tries the next plane behind it, so a spurious plane (one
+    through the tops of objects) cannot hide the floor and walls; one round per plane at
+    most, each with verifying views chosen for its own candidates."""
+    hs, ws = scaled.grays[i].shape
+    label_acc = np.full((hs, ws), -1, np.int16)
+    beyond = np.zeros((hs, ws), np.float32)
+    checked_by: list[int] = []
+    for _ in planes:
+        cands = _candidates(i, views[i], planes, scaled, options, beyond)
+        chosen = _choose_views(cands, views, scaled, options) if cands.mask.any() else ()
+        accept_s = (
+            _accepted(cands, views, scaled, chosen, options)
+            if chosen
+            else np.zeros((hs, ws), np.bool_)
+        )
+        label_acc[accept_s] = cands.label[accept_s]
+        checked_by += [j for j in chosen if j not in checked_by]
+        retry = (cands.depth > 0) & ~accept_s
+        if not retry.any():
+            break
+        beyond = np.where(retry, cands.depth * np.float32(1.0 + 1e-4), np.inf).astype(np.float32)
+    if not (label_acc >= 0).any():
+        return _ViewFill.unchanged(depth, tuple(checked_by))
+    return _lay_in(views[i], depth, planes, label_acc, tuple(checked_by), options)
 
 
 @dataclass(frozen=True)

@@ -839,6 +839,8 @@ def _fill_view(
         )
         label_acc[accept_s] = cands.label[accept_s]
         checked_by += [j for j in chosen if j not in checked_by]
+        # occluders' pixels (own depth near) stay too: the edge test of their neighbours
+        # compares the own depth with the plane depth behind it
         retry = (cands.depth > 0) & ~accept_s
         if not retry.any():
             break

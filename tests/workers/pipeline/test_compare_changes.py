@@ -142,7 +142,7 @@ def test_contract_json_and_progress(before: CaptureData) -> None:
         before, after, TWIN, CLASSES, DIAMETERS, progress=lambda s, f: calls.append((s, f))
     )
     doc = json.loads(json.dumps(res.to_json()))
-    assert doc["options"]["threshold"] == {"kind": "mean_std", "k": 1.0}
+    assert doc["options"]["threshold"] == {"kind": "mean_std", "k": 1.0, "clip": 6.0}
     for side in ("added", "removed"):
         assert {"mean", "std", "threshold"} <= set(doc["distances"][side])
     change = next(c for c in doc["changes"] if c["type"] == "moved")

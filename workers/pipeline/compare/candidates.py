@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.c2c import C2CResult
 from workers.pipeline.compare.data import CaptureData
@@ -28,6 +29,10 @@ from workers.pipeline.compare.visibility import DepthMap, covered_mask, seen_emp
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: neighbours of the other cloud the local surface plane of :func:`on_other_surface` is
+#: fitted to (as the roughness of a lod threshold)
+SURFACE_NEIGHBOURS = 16
 
 
 @dataclass(frozen=True)
@@ -205,3 +210,49 @@ def unevidenced_added(
         if k < options.min_seen_fraction * len(idx):
             unevidenced.add(c.id)
     return unevidenced
+
+
+def surface_distances(points_env: FloatArray, other: cKDTree) -> FloatArray:
+    """Distance (N,) metres of (N, 3) points to the other cloud's local surface: the PCA
+    plane through their ``SURFACE_NEIGHBOURS`` nearest points of the cloud in ``other``."""
+    k = min(SURFACE_NEIGHBOURS, other.n)
+    _, nn = other.query(points_env, k=k, workers=-1)
+    nb = np.asarray(other.data)[nn.reshape(len(points_env), k)]  # (N, k, 3)
+    centre = nb.mean(axis=1)
+    centred = nb - centre[:, None, :]
+    normal = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))[1][:, :, 0]
+    return np.asarray(np.abs(np.einsum("ni,ni->n", points_env - centre, normal)))
+
+
+def on_other_surface(
+    clusters: Sequence[ClusterResult],
+    c2c: C2CResult,
+    thresholds_m: dict[str, float],
+    options: CompareOptions,
+) -> set[int]:
+    """Ids of unidentified clusters that continue the other cloud's surface: fewer than
+    ``min_seen_fraction`` of their points above the strict threshold (``thresholds_m`` per
+    side) lie farther than it from the other cloud's local plane
+    (:func:`surface_distances`). Such points are far from every point of the other cloud
+    only because it has a hole there (a floor patch stereo did not fill), not because
+    anything stands or stood there. Sides follow ``check_seen_added`` / ``check_seen_removed``.
+    """
+    out: set[int] = set()
+    for side, distances, other, on in (
+        ("added", c2c.added, c2c.tree_before, options.check_seen_added),
+        ("removed", c2c.removed, c2c.tree_after, options.check_seen_removed),
+    ):
+        if not on:
+            continue
+        own = np.asarray((c2c.tree_after if side == "added" else c2c.tree_before).data)
+        threshold = thresholds_m[side]
+        for c in clusters:
+            if c.side != side or c.object_name is not None:
+                continue
+            strict = c.indices[distances[c.indices] > threshold]
+            if strict.size == 0:
+                continue
+            off = surface_distances(own[strict], other) > threshold
+            if np.count_nonzero(off) < options.min_seen_fraction * strict.size:
+                out.add(c.id)
+    return out

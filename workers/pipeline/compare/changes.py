@@ -11,8 +11,9 @@ Order of decisions (all pairings are optimal assignments, Hungarian, on centroid
    (an identified cluster the other capture's detector still names at its place is
    left out of steps 3 and 4: a hole in one reconstruction, not a change);
 5. unidentified clusters of at least ``unidentified_min_points`` points found at the strict
-   threshold (growth does not count) are reported as ``unidentified`` changes, never
-   dropped; they all stay in the clusters table.
+   threshold (growth does not count) are reported as ``unidentified`` changes unless the
+   caller found no evidence of a change (``not_changes``); they all stay in the clusters
+   table.
 Identity across snapshots: moved keeps the closed instance's id; added and swapped-in
 objects get a new one from ``new_id``.
 """

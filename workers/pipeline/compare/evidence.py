@@ -6,6 +6,10 @@ its place, and the twin instance it lies on.
   A removed object that the after capture's detector still boxes as its class at its
   place was not removed: the after reconstruction lost its surface (a hole). Likewise an
   added object boxed in the before images was there already.
+- *Part of a standing object*: an unidentified cluster whose box lies inside a detection
+  of one class (``merge_containment``) in at least ``merge_shared_fraction`` of its views
+  in **both** captures is a piece of an object that stood there before and after,
+  reconstructed differently (surface texture, light), not a change.
 - *Named by the twin*: a removed cluster the detector does not name on its own, lying on
   a twin instance, takes that instance's class when the class still scores a lower
   threshold: the twin says what stood there, the detector agrees in part (a small or flat
@@ -14,6 +18,13 @@ its place, and the twin instance it lies on.
   where an identified object was removed, takes its best other class at the same lower
   threshold (a swap in place: the new object's cluster holds the floor the old one
   covered, a looser box); one cluster per removal, the best scoring.
+- *The other end of a move*: an identified cluster whose class has no identified cluster
+  on the other side is one end of a move or a plain addition/removal; the unidentified
+  cluster of the other side that scores best for that class, at the same lower
+  threshold, away from the end's own place (a swap's reach) but within
+  ``moved_max_distance``, is named that class when the capture it is missing from scores
+  the class there below that threshold (the object was not there then; a flat object's
+  new place is too loose a box to be named on its own).
 
 Points in the environment frame (metres), pixels in the scored capture's images.
 """
@@ -27,7 +38,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from workers.pipeline.compare.data import CaptureData, TwinInstance
-from workers.pipeline.compare.identify import IdentificationTable, identify, yolo_to_boxes
+from workers.pipeline.compare.identify import (
+    IdentificationTable,
+    containment,
+    identify,
+    yolo_to_boxes,
+)
 from workers.pipeline.compare.options import CompareOptions
 from workers.pipeline.compare.results import ClusterResult
 from workers.pipeline.compare.visibility import DepthMap, box_from_pixels, visible_points
@@ -102,6 +118,59 @@ def still_there(
     return out
 
 
+def contained_shares(
+    points_env: FloatArray,
+    capture: CaptureData,
+    depth_maps: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    options: CompareOptions,
+) -> FloatArray:
+    """(K,) share per class of the views of ``capture`` where the points occur
+    (:func:`occurrence_boxes`) in which a detection of that class contains at least
+    ``merge_containment`` of their box (zeros where they occur nowhere)."""
+    boxes = occurrence_boxes(points_env, capture, depth_maps, options)
+    held = np.zeros(len(classes))
+    for img, box in boxes.items():
+        cam = capture.cameras[img]
+        det, cls = yolo_to_boxes(
+            capture.detections.get(cam.name, np.zeros((0, 6))), cam.width, cam.height
+        )
+        if len(det) == 0:
+            continue
+        inside = containment(box[None, :], det)[0] >= options.merge_containment
+        for k in set(cls[inside].tolist()):
+            if 0 <= k < len(classes):
+                held[k] += 1
+    return held / max(len(boxes), 1)
+
+
+def parts_of_standing_objects(
+    clusters: Sequence[ClusterResult],
+    before: CaptureData,
+    after: CaptureData,
+    maps_before: Sequence[DepthMap] | None,
+    maps_after: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    options: CompareOptions,
+) -> set[int]:
+    """Ids of unidentified clusters inside detections of one class in at least
+    ``merge_shared_fraction`` of their views in both captures (:func:`contained_shares`):
+    parts of an object standing in both. Empty when ``still_there_metric`` is None."""
+    if options.still_there_metric is None:
+        return set()
+    out: set[int] = set()
+    for c in clusters:
+        if c.object_name is not None:
+            continue
+        shares = [
+            contained_shares(c.points_env, capture, maps, classes, options)
+            for capture, maps in ((before, maps_before), (after, maps_after))
+        ]
+        if np.any(np.minimum(*shares) >= options.merge_shared_fraction):
+            out.add(c.id)
+    return out
+
+
 def _instance_at(
     cluster: ClusterResult,
     twin: Sequence[TwinInstance],
@@ -141,6 +210,73 @@ def name_by_twin(
             if inst is not None and c.metrics.get(inst.object_name, 0.0) >= low:
                 c = dataclasses.replace(c, object_name=inst.object_name)
         out.append(c)
+    return out
+
+
+def _other_capture_metric(
+    cluster: ClusterResult,
+    name: str,
+    before: CaptureData,
+    after: CaptureData,
+    maps_before: Sequence[DepthMap] | None,
+    maps_after: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    options: CompareOptions,
+) -> float:
+    """Metric of class ``name`` for ``cluster``'s points in the capture it is not from."""
+    other, maps = (after, maps_after) if cluster.side == "removed" else (before, maps_before)
+    table = cross_capture_table([cluster], other, maps, classes, options)
+    return float(table.metric[0, list(classes).index(name)])
+
+
+def name_move_ends(
+    clusters: Sequence[ClusterResult],
+    class_diameters_m: Mapping[str, float],
+    before: CaptureData,
+    after: CaptureData,
+    maps_before: Sequence[DepthMap] | None,
+    maps_after: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    options: CompareOptions,
+) -> list[ClusterResult]:
+    """``clusters`` with, for each identified cluster whose class no identified cluster of
+    the other side has (best metric first), the other side's unidentified cluster scoring
+    best for that class named by it, when that metric is at least
+    ``twin_identify_threshold``, the two lie between ``swap_distance_factor`` × the class
+    diameter (not the end's own place: the floor a removed object covered, say) and
+    ``moved_max_distance`` apart, and the capture
+    the candidate is missing from scores the class at its place below that threshold
+    (unchanged when ``twin_identify_threshold`` is None)."""
+    low = options.twin_identify_threshold
+    if low is None:
+        return list(clusters)
+    out = list(clusters)
+    ends = sorted(
+        (c for c in out if c.object_name is not None),
+        key=lambda c: -c.metrics.get(str(c.object_name), 0.0),
+    )
+    for end in ends:
+        name = str(end.object_name)
+        if any(c.side != end.side and c.object_name == name for c in out):
+            continue
+        near = options.swap_distance_factor * float(class_diameters_m.get(name, 0.0))
+        candidates = [
+            i
+            for i, c in enumerate(out)
+            if c.side != end.side
+            and c.object_name is None
+            and c.metrics.get(name, 0.0) >= low
+            and near
+            <= float(np.linalg.norm(c.centroid - end.centroid))
+            <= options.moved_max_distance
+        ]
+        for i in sorted(candidates, key=lambda i: -out[i].metrics.get(name, 0.0)):
+            there = _other_capture_metric(
+                out[i], name, before, after, maps_before, maps_after, classes, options
+            )
+            if there < low:
+                out[i] = dataclasses.replace(out[i], object_name=name)
+                break
     return out
 
 

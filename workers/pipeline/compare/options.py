@@ -96,9 +96,10 @@ class CompareOptions:
     """Every knob of the compare stage. Lengths in metres, image sizes in pixels."""
 
     # thresholds
-    # how each side's change threshold on C2C distances is chosen (see ThresholdSpec); a
-    # clip lets a small change beside a large one through, but surface noise too
-    threshold: ThresholdSpec = field(default_factory=ThresholdSpec)
+    # how each side's change threshold on C2C distances is chosen (see ThresholdSpec); the
+    # clip lets a small change beside a large one through (and surface noise, which the
+    # evidence checks of unidentified clusters then drop); clip None for the thesis's level
+    threshold: ThresholdSpec = field(default_factory=lambda: ThresholdSpec(clip=6.0))
     # distance statistics over "overlap" (points the other capture looked at) or "all" points
     stats_region: StatsRegion = "overlap"
     # at most this many points (seeded sample) for the overlap test of the statistics
@@ -193,8 +194,10 @@ class CompareOptions:
     # a swap's clusters lie closer than this × the larger of the two diameters
     swap_distance_factor: float = 0.5
     # a removed cluster the detector does not name takes the class of the twin instance it
-    # lies on, and an added one standing where an identified object was removed its best
-    # other class, when that class scores at least this metric (None: off)
+    # lies on, an added one standing where an identified object was removed its best
+    # other class, and the best cluster elsewhere for the class of an identified cluster
+    # with no counterpart (a move's other end) that class, when it scores at least this
+    # metric (None: off)
     twin_identify_threshold: float | None = 0.3
     # an identified cluster left as a plain addition or removal is no change when the
     # other capture's detector names its class at its place with at least this metric

@@ -4,8 +4,11 @@ Steps: C2C both ways → thresholds → candidate points → "not seen ≠ remov
 DBSCAN per side → re-projection with visibility into the side's own capture → merging of
 split clusters → hysteresis growth through points above the lower threshold, less the
 smeared floor around each foot (skirt pruning), then the band beneath its walls (base
-growth) → identification table (identify.py) → change types against the twin.
-The steps before clustering are in candidates.py, a side's clustering in side_clusters.py.
+growth) → identification table (identify.py) → names from cross-evidence (the twin, a
+move's other end, a swap's place) → evidence that each unidentified cluster is a change
+(seen empty, off the other cloud's surface, not part of an object standing in both) →
+change types against the twin. The steps before clustering are in candidates.py, a side's
+clustering in side_clusters.py, the cross-capture evidence in evidence.py.
 Pure: no files, no database; randomness (z-buffer point subsets, spacing samples) is seeded.
 """
 
@@ -27,11 +30,18 @@ from workers.pipeline.compare.candidates import (
     both_cloud_stats,
     drop_unseen_removed,
     find_candidates,
+    on_other_surface,
     unevidenced_added,
 )
 from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
-from workers.pipeline.compare.evidence import name_at_removals, name_by_twin, still_there
+from workers.pipeline.compare.evidence import (
+    name_at_removals,
+    name_by_twin,
+    name_move_ends,
+    parts_of_standing_objects,
+    still_there,
+)
 from workers.pipeline.compare.options import PRESETS, CompareOptions
 from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
@@ -213,6 +223,9 @@ def compare_snapshots(
     library = Library(classes=classes, class_diameters_m=class_diameters_m, grow_max_m=reach_m)
     clusters = _both_sides_clusters(before, after, candidates, clouds, maps, library, options)
     clusters = name_by_twin(clusters, twin, class_diameters_m, options)
+    clusters = name_move_ends(
+        clusters, class_diameters_m, before, after, maps.before, maps.after, classes, options
+    )
     clusters = name_at_removals(clusters, class_diameters_m, options)
     watch.lap("clusters_identify")
 
@@ -220,6 +233,11 @@ def compare_snapshots(
     threshold_added = candidates.added.distances.threshold
     unevidenced = unevidenced_added(
         clusters, c2c.added, threshold_added, after, seen_maps.before, options
+    )
+    thresholds = {"added": threshold_added, "removed": candidates.removed.distances.threshold}
+    unevidenced |= on_other_surface(clusters, c2c, thresholds, options)
+    unevidenced |= parts_of_standing_objects(
+        clusters, before, after, maps.before, maps.after, classes, options
     )
     there = still_there(clusters, before, after, maps.before, maps.after, classes, options)
     try:

@@ -17,12 +17,24 @@ from tests.workers.pipeline.compare_scene import (
     TWIN,
     Counter,
     Obj,
+    bin_,
     capture,
+    crate,
     detections,
+    sample_box,
     twin_of,
 )
 from workers.pipeline.compare import PRESETS, CaptureData, ClusterResult, compare_snapshots
-from workers.pipeline.compare.evidence import name_at_removals, name_by_twin, occurrence_boxes
+from workers.pipeline.compare.c2c import c2c_both_ways
+from workers.pipeline.compare.candidates import on_other_surface
+from workers.pipeline.compare.evidence import (
+    _other_capture_metric,
+    name_at_removals,
+    name_by_twin,
+    name_move_ends,
+    occurrence_boxes,
+    parts_of_standing_objects,
+)
 from workers.pipeline.errors import InputError
 
 
@@ -163,3 +175,124 @@ def test_an_added_cluster_at_a_removal_takes_its_best_other_class() -> None:
     assert [c.object_name for c in named] == ["crate", "bin", None, None, None]
     off = PRESETS["default"].replace(twin_identify_threshold=None)
     assert name_at_removals([removed, best], DIAMETERS, off)[1].object_name is None
+
+
+def _on(obj: Obj, side: str, metrics: dict[str, float], cid: int) -> ClusterResult:
+    """A cluster of ``side`` made of points on ``obj``'s faces, with the given metrics."""
+    c, size = obj.boxes()[0]
+    pts = sample_box(np.random.default_rng(cid), c, size)
+    return dataclasses.replace(
+        _cluster(side, tuple(obj.centroid.tolist()), metrics),
+        id=cid,
+        indices=np.arange(len(pts)),
+        points_env=pts,
+    )
+
+
+def test_a_move_end_is_named_where_the_class_was_not_before() -> None:
+    """A crate moved from ``gone`` to ``new``; a second crate ``stays``. The removal is
+    identified, the new place only scores 0.35: it is named crate. The unchanged crate's
+    cluster scores higher, but the before capture's detector boxes a crate there: no end."""
+    gone, new, stays, bin_at = crate(-0.8, 0.5), crate(0.6, 0.9), crate(0.2, -0.9), bin_(-0.6, -0.6)
+    before = capture([gone, stays, bin_at], CAMS, seed=1)
+    after = capture([new, stays, bin_at], CAMS, seed=2)
+    options = PRESETS["default"].replace(twin_identify_threshold=0.3)
+    removed = dataclasses.replace(
+        _on(gone, "removed", {"crate": 0.8, "bin": 0.0, "cart": 0.0}, 1), object_name="crate"
+    )
+    on_stays = _on(stays, "added", {"crate": 0.5, "bin": 0.0, "cart": 0.0}, 2)
+    at_new = _on(new, "added", {"crate": 0.35, "bin": 0.0, "cart": 0.0}, 3)
+    weak = _on(bin_at, "added", {"crate": 0.2, "bin": 0.1, "cart": 0.0}, 4)
+    clusters = [removed, on_stays, at_new, weak]
+
+    def names(found: list[ClusterResult]) -> list[str | None]:
+        return [c.object_name for c in found]
+
+    named = name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, options)
+    assert names(named) == ["crate", None, "crate", None]
+    # a cluster that scores the class in the capture it is missing from was there then
+    there = _other_capture_metric(on_stays, "crate", before, after, None, None, CLASSES, options)
+    assert (
+        there
+        >= 0.3
+        > _other_capture_metric(at_new, "crate", before, after, None, None, CLASSES, options)
+    )
+    # a class that already has an identified end on the other side names nothing more
+    both = [removed, on_stays, dataclasses.replace(at_new, object_name="crate"), weak]
+    assert names(
+        name_move_ends(both, DIAMETERS, before, after, None, None, CLASSES, options)
+    ) == names(both)
+    # the end's own place (the floor a removed crate covered) is no other end
+    under = dataclasses.replace(at_new, points_env=removed.points_env * [1, 1, 0])
+    assert names(
+        name_move_ends([removed, under], DIAMETERS, before, after, None, None, CLASSES, options)
+    ) == [
+        "crate",
+        None,
+    ]
+    # too far for a move, or the rule off: nothing named
+    near = options.replace(moved_max_distance=0.5)
+    assert (
+        names(name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, near))[2]
+        is None
+    )
+    off = options.replace(twin_identify_threshold=None)
+    assert names(
+        name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, off)
+    ) == names(clusters)
+    # the same from the other end: an identified addition names the removal that scores
+    added = dataclasses.replace(at_new, object_name="crate", metrics={"crate": 0.8})
+    loose_removal = dataclasses.replace(removed, object_name=None, metrics={"crate": 0.4})
+    flipped = name_move_ends(
+        [added, loose_removal], DIAMETERS, before, after, None, None, CLASSES, options
+    )
+    assert names(flipped) == ["crate", "crate"]
+
+
+def test_a_hole_in_the_other_cloud_is_no_change() -> None:
+    """Before: a floor with a 2 cm plate on it; after: the plate gone and the floor with a
+    30 cm hole elsewhere. The before floor points over the hole are far from every after
+    point, but on the after floor's plane: no change. The plate's points stand 2 cm above
+    that plane: a change."""
+    rng = np.random.default_rng(3)
+    floor = np.c_[rng.uniform(-1, 1, (40_000, 2)), rng.normal(0, 0.001, 40_000)]
+    hole = np.linalg.norm(floor[:, :2] - [0.5, 0.5], axis=1) < 0.15
+    plate = np.c_[rng.uniform(-0.6, -0.4, (800, 2)), 0.02 + rng.normal(0, 0.001, 800)]
+    before_pts = np.concatenate([floor, plate])
+    after_pts = floor[~hole]
+    c2c = c2c_both_ways(before_pts, after_pts)
+    in_hole = np.flatnonzero(np.r_[hole, np.zeros(len(plate), dtype=bool)])
+    on_plate = np.arange(len(floor), len(before_pts))
+
+    def removed(cid: int, idx: np.ndarray) -> ClusterResult:
+        return dataclasses.replace(
+            _cluster("removed", (0.0, 0.0, 0.0), {"crate": 0.0}),
+            id=cid,
+            indices=idx,
+            points_env=before_pts[idx],
+        )
+
+    clusters = [removed(1, in_hole), removed(2, on_plate)]
+    threshold = {"added": 0.005, "removed": 0.005}
+    assert float(np.median(c2c.removed[in_hole])) > 0.04  # far from every after point
+    assert on_other_surface(clusters, c2c, threshold, PRESETS["default"]) == {1}
+    off = PRESETS["default"].replace(check_seen_removed=False)
+    assert on_other_surface(clusters, c2c, threshold, off) == set()
+
+
+def test_a_piece_of_an_object_standing_in_both_captures_is_no_change() -> None:
+    """A crate stands in both captures (a piece of it reconstructed differently); another
+    is taken away. Only the first is inside crate detections in both captures."""
+    stays, gone = crate(-0.8, 0.5), crate(0.6, -0.6)
+    before = capture([stays, gone], CAMS, seed=1)
+    after = capture([stays], CAMS, seed=2)
+    piece = _on(stays, "added", {"crate": 0.2, "bin": 0.0, "cart": 0.0}, 1)
+    piece = dataclasses.replace(piece, points_env=piece.points_env[piece.points_env[:, 2] > 0.25])
+    taken = _on(gone, "removed", {"crate": 0.2, "bin": 0.0, "cart": 0.0}, 2)
+    named = dataclasses.replace(piece, id=3, object_name="crate")
+    found = parts_of_standing_objects(
+        [piece, taken, named], before, after, None, None, CLASSES, PRESETS["default"]
+    )
+    assert found == {1}
+    off = PRESETS["default"].replace(still_there_metric=None)
+    assert parts_of_standing_objects([piece], before, after, None, None, CLASSES, off) == set()

@@ -8,7 +8,7 @@ distances in metres. Randomness (statistics samples) is seeded by ``options.seed
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -227,7 +227,7 @@ def surface_distances(points_env: FloatArray, other: cKDTree) -> FloatArray:
 def on_other_surface(
     clusters: Sequence[ClusterResult],
     c2c: C2CResult,
-    thresholds_m: dict[str, float],
+    thresholds_m: Mapping[str, float],
     options: CompareOptions,
 ) -> set[int]:
     """Ids of unidentified clusters that continue the other cloud's surface: fewer than

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +50,24 @@ from workers.pipeline.compare.results import ClusterResult
 from workers.pipeline.compare.visibility import DepthMap, box_from_pixels, visible_points
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Captures:
+    """Both captures, the z-buffers their visibility tests use (None: no occlusion test)
+    and the detector's classes (class id i is ``classes[i]``)."""
+
+    before: CaptureData
+    after: CaptureData
+    maps_before: Sequence[DepthMap] | None
+    maps_after: Sequence[DepthMap] | None
+    classes: Sequence[str]
+
+    def other(self, cluster: ClusterResult) -> tuple[CaptureData, Sequence[DepthMap] | None]:
+        """The capture ``cluster`` is not from, and its z-buffers."""
+        if cluster.side == "removed":
+            return self.after, self.maps_after
+        return self.before, self.maps_before
 
 
 def occurrence_boxes(
@@ -92,13 +111,7 @@ def cross_capture_table(
 
 
 def still_there(
-    clusters: Sequence[ClusterResult],
-    before: CaptureData,
-    after: CaptureData,
-    maps_before: Sequence[DepthMap] | None,
-    maps_after: Sequence[DepthMap] | None,
-    classes: Sequence[str],
-    options: CompareOptions,
+    clusters: Sequence[ClusterResult], captures: Captures, options: CompareOptions
 ) -> set[int]:
     """Ids of identified clusters whose class the other capture's detector names at their
     place with a metric ≥ ``still_there_metric`` (removed: the after capture; added: the
@@ -106,13 +119,14 @@ def still_there(
     if options.still_there_metric is None:
         return set()
     out: set[int] = set()
-    for side, other, maps in (("removed", after, maps_after), ("added", before, maps_before)):
+    for side in ("removed", "added"):
         named = [c for c in clusters if c.side == side and c.object_name is not None]
         if not named:
             continue
-        table = cross_capture_table(named, other, maps, classes, options)
+        other, maps = captures.other(named[0])
+        table = cross_capture_table(named, other, maps, captures.classes, options)
         for row, c in enumerate(named):
-            k = classes.index(str(c.object_name))
+            k = list(captures.classes).index(str(c.object_name))
             if table.metric[row, k] >= options.still_there_metric:
                 out.add(c.id)
     return out
@@ -145,13 +159,7 @@ def contained_shares(
 
 
 def parts_of_standing_objects(
-    clusters: Sequence[ClusterResult],
-    before: CaptureData,
-    after: CaptureData,
-    maps_before: Sequence[DepthMap] | None,
-    maps_after: Sequence[DepthMap] | None,
-    classes: Sequence[str],
-    options: CompareOptions,
+    clusters: Sequence[ClusterResult], captures: Captures, options: CompareOptions
 ) -> set[int]:
     """Ids of unidentified clusters inside detections of one class in at least
     ``merge_shared_fraction`` of their views in both captures (:func:`contained_shares`):
@@ -163,8 +171,11 @@ def parts_of_standing_objects(
         if c.object_name is not None:
             continue
         shares = [
-            contained_shares(c.points_env, capture, maps, classes, options)
-            for capture, maps in ((before, maps_before), (after, maps_after))
+            contained_shares(c.points_env, capture, maps, captures.classes, options)
+            for capture, maps in (
+                (captures.before, captures.maps_before),
+                (captures.after, captures.maps_after),
+            )
         ]
         if np.any(np.minimum(*shares) >= options.merge_shared_fraction):
             out.add(c.id)
@@ -214,29 +225,18 @@ def name_by_twin(
 
 
 def _other_capture_metric(
-    cluster: ClusterResult,
-    name: str,
-    before: CaptureData,
-    after: CaptureData,
-    maps_before: Sequence[DepthMap] | None,
-    maps_after: Sequence[DepthMap] | None,
-    classes: Sequence[str],
-    options: CompareOptions,
+    cluster: ClusterResult, name: str, captures: Captures, options: CompareOptions
 ) -> float:
     """Metric of class ``name`` for ``cluster``'s points in the capture it is not from."""
-    other, maps = (after, maps_after) if cluster.side == "removed" else (before, maps_before)
-    table = cross_capture_table([cluster], other, maps, classes, options)
-    return float(table.metric[0, list(classes).index(name)])
+    other, maps = captures.other(cluster)
+    table = cross_capture_table([cluster], other, maps, captures.classes, options)
+    return float(table.metric[0, list(captures.classes).index(name)])
 
 
 def name_move_ends(
     clusters: Sequence[ClusterResult],
     class_diameters_m: Mapping[str, float],
-    before: CaptureData,
-    after: CaptureData,
-    maps_before: Sequence[DepthMap] | None,
-    maps_after: Sequence[DepthMap] | None,
-    classes: Sequence[str],
+    captures: Captures,
     options: CompareOptions,
 ) -> list[ClusterResult]:
     """``clusters`` with, for each identified cluster whose class no identified cluster of
@@ -271,9 +271,7 @@ def name_move_ends(
             <= options.moved_max_distance
         ]
         for i in sorted(candidates, key=lambda i: -out[i].metrics.get(name, 0.0)):
-            there = _other_capture_metric(
-                out[i], name, before, after, maps_before, maps_after, classes, options
-            )
+            there = _other_capture_metric(out[i], name, captures, options)
             if there < low:
                 out[i] = dataclasses.replace(out[i], object_name=name)
                 break

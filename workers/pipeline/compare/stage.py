@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from workers.pipeline.compare.c2c import c2c_both_ways
+from workers.pipeline.compare.c2c import C2CResult, c2c_both_ways
 from workers.pipeline.compare.candidates import (
     Candidates,
     CloudStatsPair,
@@ -36,6 +36,7 @@ from workers.pipeline.compare.candidates import (
 from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.evidence import (
+    Captures,
     name_at_removals,
     name_by_twin,
     name_move_ends,
@@ -50,6 +51,7 @@ from workers.pipeline.compare.visibility import DepthMap, render_depth
 from workers.pipeline.errors import ComparisonError, InputError
 
 Progress = Callable[[str, float], None]
+SIDES: tuple[Side, ...] = ("added", "removed")
 
 
 def render_depth_maps(
@@ -178,6 +180,27 @@ def _stats_json(
     }
 
 
+def _unevidenced(
+    clusters: Sequence[ClusterResult],
+    c2c: C2CResult,
+    candidates: Candidates,
+    seen_maps: DepthMapsPair,
+    both: Captures,
+    options: CompareOptions,
+) -> set[int]:
+    """Ids of unidentified clusters without evidence of a change: the other capture did not
+    see the place empty (added side), the points continue the other cloud's surface, or
+    they are a piece of an object the detector boxes in both captures."""
+    thresholds: dict[str, float] = {
+        side: getattr(candidates, side).distances.threshold for side in SIDES
+    }
+    out = unevidenced_added(
+        clusters, c2c.added, thresholds["added"], both.after, seen_maps.before, options
+    )
+    out |= on_other_surface(clusters, c2c, thresholds, options)
+    return out | parts_of_standing_objects(clusters, both, options)
+
+
 def compare_snapshots(
     before: CaptureData,
     after: CaptureData,
@@ -222,24 +245,15 @@ def compare_snapshots(
     reach_m = options.grow_max_diameters * max(class_diameters_m.values(), default=0.0)
     library = Library(classes=classes, class_diameters_m=class_diameters_m, grow_max_m=reach_m)
     clusters = _both_sides_clusters(before, after, candidates, clouds, maps, library, options)
+    both = Captures(before, after, maps.before, maps.after, classes)
     clusters = name_by_twin(clusters, twin, class_diameters_m, options)
-    clusters = name_move_ends(
-        clusters, class_diameters_m, before, after, maps.before, maps.after, classes, options
-    )
+    clusters = name_move_ends(clusters, class_diameters_m, both, options)
     clusters = name_at_removals(clusters, class_diameters_m, options)
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)
-    threshold_added = candidates.added.distances.threshold
-    unevidenced = unevidenced_added(
-        clusters, c2c.added, threshold_added, after, seen_maps.before, options
-    )
-    thresholds = {"added": threshold_added, "removed": candidates.removed.distances.threshold}
-    unevidenced |= on_other_surface(clusters, c2c, thresholds, options)
-    unevidenced |= parts_of_standing_objects(
-        clusters, before, after, maps.before, maps.after, classes, options
-    )
-    there = still_there(clusters, before, after, maps.before, maps.after, classes, options)
+    unevidenced = _unevidenced(clusters, c2c, candidates, seen_maps, both, options)
+    there = still_there(clusters, both, options)
     try:
         changes = classify_changes(
             clusters,

@@ -28,6 +28,7 @@ from workers.pipeline.compare import PRESETS, CaptureData, ClusterResult, compar
 from workers.pipeline.compare.c2c import c2c_both_ways
 from workers.pipeline.compare.candidates import on_other_surface
 from workers.pipeline.compare.evidence import (
+    Captures,
     _other_capture_metric,
     name_at_removals,
     name_by_twin,
@@ -208,24 +209,32 @@ def test_a_move_end_is_named_where_the_class_was_not_before() -> None:
     def names(found: list[ClusterResult]) -> list[str | None]:
         return [c.object_name for c in found]
 
-    named = name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, options)
+    named = name_move_ends(
+        clusters, DIAMETERS, Captures(before, after, None, None, CLASSES), options
+    )
     assert names(named) == ["crate", None, "crate", None]
     # a cluster that scores the class in the capture it is missing from was there then
-    there = _other_capture_metric(on_stays, "crate", before, after, None, None, CLASSES, options)
+    there = _other_capture_metric(
+        on_stays, "crate", Captures(before, after, None, None, CLASSES), options
+    )
     assert (
         there
         >= 0.3
-        > _other_capture_metric(at_new, "crate", before, after, None, None, CLASSES, options)
+        > _other_capture_metric(
+            at_new, "crate", Captures(before, after, None, None, CLASSES), options
+        )
     )
     # a class that already has an identified end on the other side names nothing more
     both = [removed, on_stays, dataclasses.replace(at_new, object_name="crate"), weak]
     assert names(
-        name_move_ends(both, DIAMETERS, before, after, None, None, CLASSES, options)
+        name_move_ends(both, DIAMETERS, Captures(before, after, None, None, CLASSES), options)
     ) == names(both)
     # the end's own place (the floor a removed crate covered) is no other end
     under = dataclasses.replace(at_new, points_env=removed.points_env * [1, 1, 0])
     assert names(
-        name_move_ends([removed, under], DIAMETERS, before, after, None, None, CLASSES, options)
+        name_move_ends(
+            [removed, under], DIAMETERS, Captures(before, after, None, None, CLASSES), options
+        )
     ) == [
         "crate",
         None,
@@ -233,18 +242,20 @@ def test_a_move_end_is_named_where_the_class_was_not_before() -> None:
     # too far for a move, or the rule off: nothing named
     near = options.replace(moved_max_distance=0.5)
     assert (
-        names(name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, near))[2]
+        names(
+            name_move_ends(clusters, DIAMETERS, Captures(before, after, None, None, CLASSES), near)
+        )[2]
         is None
     )
     off = options.replace(twin_identify_threshold=None)
     assert names(
-        name_move_ends(clusters, DIAMETERS, before, after, None, None, CLASSES, off)
+        name_move_ends(clusters, DIAMETERS, Captures(before, after, None, None, CLASSES), off)
     ) == names(clusters)
     # the same from the other end: an identified addition names the removal that scores
     added = dataclasses.replace(at_new, object_name="crate", metrics={"crate": 0.8})
     loose_removal = dataclasses.replace(removed, object_name=None, metrics={"crate": 0.4})
     flipped = name_move_ends(
-        [added, loose_removal], DIAMETERS, before, after, None, None, CLASSES, options
+        [added, loose_removal], DIAMETERS, Captures(before, after, None, None, CLASSES), options
     )
     assert names(flipped) == ["crate", "crate"]
 
@@ -291,8 +302,11 @@ def test_a_piece_of_an_object_standing_in_both_captures_is_no_change() -> None:
     taken = _on(gone, "removed", {"crate": 0.2, "bin": 0.0, "cart": 0.0}, 2)
     named = dataclasses.replace(piece, id=3, object_name="crate")
     found = parts_of_standing_objects(
-        [piece, taken, named], before, after, None, None, CLASSES, PRESETS["default"]
+        [piece, taken, named], Captures(before, after, None, None, CLASSES), PRESETS["default"]
     )
     assert found == {1}
     off = PRESETS["default"].replace(still_there_metric=None)
-    assert parts_of_standing_objects([piece], before, after, None, None, CLASSES, off) == set()
+    assert (
+        parts_of_standing_objects([piece], Captures(before, after, None, None, CLASSES), off)
+        == set()
+    )

@@ -11,9 +11,10 @@ Order of decisions (all pairings are optimal assignments, Hungarian, on centroid
    (an identified cluster the other capture's detector still names at its place is
    left out of steps 3 and 4: a hole in one reconstruction, not a change);
 5. unidentified clusters of at least ``unidentified_min_points`` points found at the strict
-   threshold (growth does not count) are reported as ``unidentified`` changes unless the
-   caller found no evidence of a change (``not_changes``); they all stay in the clusters
-   table.
+   threshold (growth does not count) are reported as ``unidentified`` changes; they all
+   stay in the clusters table.
+Clusters the caller found no evidence of a change for (``not_changes``: a hole in the other
+cloud, a piece of an object standing in both captures) take part in none of the steps.
 Identity across snapshots: moved keeps the closed instance's id; added and swapped-in
 objects get a new one from ``new_id``.
 """
@@ -243,12 +244,13 @@ def classify_changes(
     still_there: Collection[int] = (),
 ) -> list[Change]:
     """Changes from identified clusters and the twin state (see module docstring).
-    ``not_changes``: ids of unidentified clusters without evidence of a change (kept in
-    the clusters table, not reported); ``still_there``: ids of identified clusters the
+    ``not_changes``: ids of clusters without evidence of a change (kept in the clusters
+    table, neither paired nor reported); ``still_there``: ids of identified clusters the
     other capture's detector still names at their place: they may pair as a move, but
     are neither swapped nor reported alone."""
-    added = [c for c in clusters if c.side == "added" and c.object_name is not None]
-    removed = [c for c in clusters if c.side == "removed" and c.object_name is not None]
+    named = [c for c in clusters if c.object_name is not None and c.id not in not_changes]
+    added = [c for c in named if c.side == "added"]
+    removed = [c for c in named if c.side == "removed"]
     closes = _close_instances(removed, twin, class_diameters_m, options)
     found = _Identified(added=added, removed=removed, closes=closes)
     moved = _moved(found, options, new_id)

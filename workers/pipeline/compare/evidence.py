@@ -6,10 +6,11 @@ its place, and the twin instance it lies on.
   A removed object that the after capture's detector still boxes as its class at its
   place was not removed: the after reconstruction lost its surface (a hole). Likewise an
   added object boxed in the before images was there already.
-- *Part of a standing object*: an unidentified cluster whose box lies inside a detection
-  of one class (``merge_containment``) in at least ``merge_shared_fraction`` of its views
-  in **both** captures is a piece of an object that stood there before and after,
-  reconstructed differently (surface texture, light), not a change.
+- *Part of a standing object*: a cluster whose box lies inside a detection of one class
+  (``merge_containment``) in at least ``merge_shared_fraction`` of its views in **both**
+  captures is a piece of an object that stood there before and after, reconstructed
+  differently (surface texture, light), not a change, whatever name it got (a piece on a
+  twin instance scores that class too).
 - *Named by the twin*: a removed cluster the detector does not name on its own, lying on
   a twin instance, takes that instance's class when the class still scores a lower
   threshold: the twin says what stood there, the detector agrees in part (a small or flat
@@ -161,15 +162,13 @@ def contained_shares(
 def parts_of_standing_objects(
     clusters: Sequence[ClusterResult], captures: Captures, options: CompareOptions
 ) -> set[int]:
-    """Ids of unidentified clusters inside detections of one class in at least
+    """Ids of clusters inside detections of one class in at least
     ``merge_shared_fraction`` of their views in both captures (:func:`contained_shares`):
     parts of an object standing in both. Empty when ``still_there_metric`` is None."""
     if options.still_there_metric is None:
         return set()
     out: set[int] = set()
     for c in clusters:
-        if c.object_name is not None:
-            continue
         shares = [
             contained_shares(c.points_env, capture, maps, captures.classes, options)
             for capture, maps in (

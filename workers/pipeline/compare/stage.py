@@ -189,16 +189,14 @@ def _unevidenced(
     options: CompareOptions,
 ) -> set[int]:
     """Ids of unidentified clusters without evidence of a change: the other capture did not
-    see the place empty (added side), the points continue the other cloud's surface, or
-    they are a piece of an object the detector boxes in both captures."""
+    see the place empty (added side) or the points continue the other cloud's surface."""
     thresholds: dict[str, float] = {
         side: getattr(candidates, side).distances.threshold for side in SIDES
     }
     out = unevidenced_added(
         clusters, c2c.added, thresholds["added"], both.after, seen_maps.before, options
     )
-    out |= on_other_surface(clusters, c2c, thresholds, options)
-    return out | parts_of_standing_objects(clusters, both, options)
+    return out | on_other_surface(clusters, c2c, thresholds, options)
 
 
 def compare_snapshots(
@@ -252,7 +250,9 @@ def compare_snapshots(
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)
-    unevidenced = _unevidenced(clusters, c2c, candidates, seen_maps, both, options)
+    # a piece of an object standing in both captures is no change, named or not
+    pieces = parts_of_standing_objects(clusters, both, options)
+    unevidenced = _unevidenced(clusters, c2c, candidates, seen_maps, both, options) | pieces
     there = still_there(clusters, both, options)
     try:
         changes = classify_changes(

@@ -33,7 +33,7 @@ Points in the environment frame (metres), pixels in the scored capture's images.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -237,6 +237,7 @@ def name_move_ends(
     class_diameters_m: Mapping[str, float],
     captures: Captures,
     options: CompareOptions,
+    pieces: Collection[int] = (),
 ) -> list[ClusterResult]:
     """``clusters`` with, for each identified cluster whose class no identified cluster of
     the other side has (best metric first), the other side's unidentified cluster scoring
@@ -245,7 +246,9 @@ def name_move_ends(
     diameter (not the end's own place: the floor a removed object covered, say) and
     ``moved_max_distance`` apart, and the capture
     the candidate is missing from scores the class at its place below that threshold
-    (unchanged when ``twin_identify_threshold`` is None)."""
+    (unchanged when ``twin_identify_threshold`` is None). Clusters in ``pieces`` (ids of
+    :func:`parts_of_standing_objects`: another standing instance of the class) are no
+    candidates."""
     low = options.twin_identify_threshold
     if low is None:
         return list(clusters)
@@ -264,6 +267,7 @@ def name_move_ends(
             for i, c in enumerate(out)
             if c.side != end.side
             and c.object_name is None
+            and c.id not in pieces
             and c.metrics.get(name, 0.0) >= low
             and near
             <= float(np.linalg.norm(c.centroid - end.centroid))

@@ -244,14 +244,14 @@ def compare_snapshots(
     library = Library(classes=classes, class_diameters_m=class_diameters_m, grow_max_m=reach_m)
     clusters = _both_sides_clusters(before, after, candidates, clouds, maps, library, options)
     both = Captures(before, after, maps.before, maps.after, classes)
+    # a piece of an object standing in both captures is no change, named or not
+    pieces = parts_of_standing_objects(clusters, both, options)
     clusters = name_by_twin(clusters, twin, class_diameters_m, options)
-    clusters = name_move_ends(clusters, class_diameters_m, both, options)
+    clusters = name_move_ends(clusters, class_diameters_m, both, options, pieces)
     clusters = name_at_removals(clusters, class_diameters_m, options)
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)
-    # a piece of an object standing in both captures is no change, named or not
-    pieces = parts_of_standing_objects(clusters, both, options)
     unevidenced = _unevidenced(clusters, c2c, candidates, seen_maps, both, options) | pieces
     there = still_there(clusters, both, options)
     try:

@@ -230,6 +230,9 @@ def test_a_move_end_is_named_where_the_class_was_not_before() -> None:
     assert names(
         name_move_ends(both, DIAMETERS, Captures(before, after, None, None, CLASSES), options)
     ) == names(both)
+    # a piece of another standing crate is no other end
+    both = Captures(before, after, None, None, CLASSES)
+    assert names(name_move_ends(clusters, DIAMETERS, both, options, pieces={3}))[2] is None
     # the end's own place (the floor a removed crate covered) is no other end
     under = dataclasses.replace(at_new, points_env=removed.points_env * [1, 1, 0])
     assert names(

@@ -240,15 +240,26 @@ def test_the_cli_lists_the_objects_of_a_capture_folder(
     assert "must be a JSON object" in capsys.readouterr().err
 
 
-def test_the_floor_is_the_widest_of_the_lowest_slab() -> None:
-    """A floor patch cut off by a wall (beyond it, at the same height) comes first by
-    height but is not the floor."""
+def test_patches_of_one_level_are_one_support_with_the_floor_noise() -> None:
+    """A sparse floor patch cut off by a wall, with a 1.5 cm flat object on it, is floor:
+    one support, the floor's noise, and the object's top stands above its band (the patch
+    alone, mostly object, took the object's height for its noise: 9.7 mm, the object hidden)."""
     rng = np.random.default_rng(5)
     patch = _sample_rect(
         rng, np.array([-1.0, 2.2, -0.002]), np.array([0.5, 0, 0]), np.array([0, 0.4, 0])
+    )[::3]
+    flat = _sample_rect(
+        rng, np.array([-0.9, 2.3, 0.015]), np.array([0.3, 0, 0]), np.array([0, 0.2, 0])
     )
-    scene = capture([], CAMS, seed=1, extra=np.vstack([wall(rng), patch]))
+    beneath = (np.abs(patch[:, 0] + 0.75) < 0.15) & (np.abs(patch[:, 1] - 2.4) < 0.1)
+    patch = patch[~beneath] + rng.normal(0, NOISE, (int((~beneath).sum()), 3))
+    flat += rng.normal(0, NOISE, flat.shape)
+    scene = capture([], CAMS, seed=1, extra=np.vstack([wall(rng), patch, flat]))
     supports = find_supports(scene.points_env, 0.3, InventoryOptions())
-    assert len(supports) == 2
-    floor = next(s for s in supports if s.name == "floor")
-    assert floor.area_m2 > 10 and [s.name for s in supports if s is not floor] == ["surface_1"]
+    assert [s.name for s in supports] == ["floor"]
+    floor = supports[0]
+    assert floor.area_m2 > 10 and floor.covers(np.array([[-0.75, 2.4, 0.0]]))[0]
+    assert floor.noise_m == pytest.approx(NOISE, rel=0.3)
+    heights, owner = standing_heights(flat, supports)
+    assert (owner == 0).all()
+    assert np.mean(heights > 3.0 * floor.noise_m) > 0.95

@@ -2,9 +2,10 @@
 
 Horizontal planes of the environment frame (z up, metres): peaks of the height histogram
 whose slab of points covers a wide area once thin lines (walls seen edge-on in the raster)
-are opened away. Each support has a least-squares plane refitted on its own points, the
-robust spread of those points about it (the cloud's noise there), and a footprint raster
-whose object-sized holes are filled, since nothing sees the floor beneath an object.
+are opened away; the wide patches of one slab are one support. Each support has a
+least-squares plane refitted on its own points, the robust spread of those points about
+it (the cloud's noise there), and a footprint raster whose object-sized holes are filled,
+since nothing sees the floor beneath an object.
 """
 
 from __future__ import annotations
@@ -143,6 +144,42 @@ def _flat_columns(points_env: Points, lo_xy: FloatArray, options: InventoryOptio
     return n_bins[np.searchsorted(cols, column)] <= options.column_max_bins
 
 
+def _slab_support(
+    points_env: Points,
+    in_slab: NDArray[np.int64],
+    ij: NDArray[np.int64],
+    regions: list[BoolArray],
+    origin_xy: FloatArray,
+    close_cells: int,
+    options: InventoryOptions,
+) -> Support | None:
+    """One support from the wide raster ``regions`` of one height slab (``in_slab`` point
+    indices, ``ij`` their raster cells from ``origin_xy``): patches of one level (a floor
+    that shelves, walls or sparse far strips cut into pieces) share one plane and the
+    noise of all their points; a small patch alone would mostly hold the objects standing
+    on it and take their height for noise. None when the plane is steeper than about 14°."""
+    in_regions = np.any(np.stack(regions), axis=0)
+    mine = in_slab[in_regions[ij[:, 1], ij[:, 0]]]
+    plane, sigma, keep = _robust_plane(points_env[mine], options.level_supports)
+    if plane[2] < 0.97:  # a ramp or a tilted board, not a support
+        return None
+    footprint = np.zeros_like(in_regions)
+    for region in regions:
+        closed = ndimage.binary_closing(
+            region, structure=np.ones((3, 3)), iterations=close_cells, border_value=0
+        )
+        footprint |= ndimage.binary_fill_holes(closed | region)
+    return Support(
+        name="",
+        plane=plane,
+        noise_m=sigma,
+        origin_xy=origin_xy.astype(np.float64),
+        cell_m=options.support_cell_m,
+        footprint=np.asarray(footprint, dtype=bool),
+        n_points=int(keep.sum()),
+    )
+
+
 def find_supports(
     points_env: Points, max_diameter_m: float, options: InventoryOptions
 ) -> list[Support]:
@@ -174,34 +211,20 @@ def find_supports(
         if opening > 0:
             solid = ndimage.binary_opening(solid, iterations=opening)
         labels, n = ndimage.label(solid, structure=np.ones((3, 3)))
-        for label in range(1, n + 1):
-            region = labels == label
-            if region.sum() * cell * cell < min_area:
-                continue
-            mine = in_slab[region[ij[:, 1], ij[:, 0]]]
-            plane, sigma, keep = _robust_plane(points_env[mine], options.level_supports)
-            if plane[2] < 0.97:  # steeper than ~14°: a ramp or a tilted board, not a support
-                continue
-            footprint = ndimage.binary_closing(
-                region, structure=np.ones((3, 3)), iterations=close_cells, border_value=0
-            )
-            footprint = ndimage.binary_fill_holes(footprint | region)
-            found.append(
-                Support(
-                    name="",
-                    plane=plane,
-                    noise_m=sigma,
-                    origin_xy=lo_xy.astype(np.float64),
-                    cell_m=cell,
-                    footprint=np.asarray(footprint, dtype=bool),
-                    n_points=int(keep.sum()),
-                )
-            )
+        wide = [
+            labels == label
+            for label in range(1, n + 1)
+            if (labels == label).sum() * cell * cell >= min_area
+        ]
+        if wide:
+            support = _slab_support(points_env, in_slab, ij, wide, lo_xy, close_cells, options)
+            if support is not None:
+                found.append(support)
     found.sort(key=lambda s: s.height_m)
     if not found:
         return []
-    # the floor: the widest of the lowest slab (a patch of floor cut off by a shelf's panels
-    # or a wall's foot is a support of its own at the same height)
+    # the floor: the widest support within two slabs of the lowest (a low platform or a
+    # sunken patch beside the floor is a support of its own)
     lowest = [s for s in found if s.height_m <= found[0].height_m + 2 * options.support_slab_m]
     floor = max(lowest, key=lambda s: s.area_m2)
     named = []

@@ -20,7 +20,7 @@ import pytest
 from tests.workers.pipeline.compare_scene import look_at
 from workers.pipeline.__main__ import main as pipeline_main
 from workers.pipeline.compare import Camera
-from workers.pipeline.compare.visibility import render_depth
+from workers.pipeline.compare.visibility import depth_votes, render_depth
 from workers.pipeline.errors import InputError, RegistrationError, ShapeError
 from workers.pipeline.geometry import (
     axis_angle_matrix,
@@ -147,6 +147,29 @@ def test_exclusion_counts_points_below_the_support_or_where_a_camera_saw_through
     # out of the camera's view nothing was seen: no evidence either
     far_off = in_air + np.array([0.0, 5.0, 0.0])
     assert exclusion_factor(far_off, None, free_space, band) == 1.0
+
+
+def test_exclusion_needs_more_cameras_seeing_through_than_seeing_a_surface_there() -> None:
+    """A real object in a sparse stretch of the cloud: one camera's z-buffer has a hole
+    there and shows the floor behind, two others see the object's surface. That is a hole,
+    not free space; seen through by two of three cameras, it is free space."""
+    k = np.array([[400.0, 0, 320], [0, 400, 240], [0, 0, 1]])
+    eyes = [(1.5, 0.0, 1.5), (-1.5, 0.0, 1.5), (0.0, 1.5, 1.5)]
+    cams = [Camera(f"c{i}", k, 640, 480, look_at(e, (0.0, 0.0, 0.0))) for i, e in enumerate(eyes)]
+    g = np.linspace(-0.6, 0.6, 241)
+    floor = np.column_stack([np.repeat(g, len(g)), np.tile(g, len(g)), np.zeros(len(g) ** 2)])
+    h = np.linspace(-0.1, 0.1, 81)
+    top = np.column_stack([np.repeat(h, len(h)), np.tile(h, len(h)), np.full(len(h) ** 2, 0.05)])
+    with_top = np.concatenate([floor, top]).astype(np.float32)
+    probe = top[::50]
+    support, band = np.array([0.0, 0.0, 1.0, 0.0]), 0.004
+    holes = [render_depth(cams[0], floor.astype(np.float32))]
+    holes += [render_depth(c, with_top) for c in cams[1:]]
+    empty, there = depth_votes(probe, holes, band)
+    assert empty.tolist() == [1] * len(probe) and there.tolist() == [2] * len(probe)
+    assert exclusion_factor(probe, support, holes, band) == 1.0
+    through = [render_depth(c, floor.astype(np.float32)) for c in cams[:2]] + holes[2:]
+    assert exclusion_factor(probe, support, through, band) == 0.0
 
 
 def test_a_pose_sunk_into_its_support_is_lifted_onto_it() -> None:

@@ -153,6 +153,30 @@ def visible_points(
     return uv, vis
 
 
+def depth_votes(
+    points_env: FloatArray,
+    depth_maps: Sequence[DepthMap],
+    tol_m: float = 0.02,
+    tol_px: float = 2.0,
+) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """For (N, 3) points, how many cameras of ``depth_maps`` see each place *empty* (the
+    point projects into the image, in front, and the surface at its pixel lies behind it
+    by more than the tolerance) and how many see a surface *there* (within the
+    tolerance). A pixel with no surface (inf) or a surface in front (occlusion) is no
+    evidence either way."""
+    empty = np.zeros(len(points_env), dtype=np.int64)
+    there = np.zeros(len(points_env), dtype=np.int64)
+    for dm in depth_maps:
+        uv, z, inside = project_in_image(dm.camera, points_env)
+        zbuf = _lookup(dm, uv, inside)
+        tol = tolerance(dm, z, tol_m, tol_px)
+        with np.errstate(invalid="ignore"):
+            seen = inside & np.isfinite(zbuf)
+            empty += seen & (zbuf > z + tol)
+            there += seen & (np.abs(zbuf - z) <= tol)
+    return empty, there
+
+
 def seen_empty_counts(
     points_env: FloatArray,
     depth_maps: Sequence[DepthMap],
@@ -160,18 +184,8 @@ def seen_empty_counts(
     tol_px: float = 2.0,
 ) -> NDArray[np.int64]:
     """For (N, 3) points of one capture, how many of the *other* capture's cameras see the
-    place as empty: the point projects into the image, in front, and that capture's surface
-    at the pixel lies *behind* the point by more than the tolerance. A pixel with no surface
-    (inf) or a surface in front (occlusion) is no evidence: the place was not seen.
-    """
-    counts = np.zeros(len(points_env), dtype=np.int64)
-    for dm in depth_maps:
-        uv, z, inside = project_in_image(dm.camera, points_env)
-        zbuf = _lookup(dm, uv, inside)
-        with np.errstate(invalid="ignore"):
-            empty = inside & np.isfinite(zbuf) & (zbuf > z + tolerance(dm, z, tol_m, tol_px))
-        counts += empty
-    return counts
+    place as empty (:func:`depth_votes`' first count)."""
+    return depth_votes(points_env, depth_maps, tol_m, tol_px)[0]
 
 
 def covered_mask(

@@ -13,7 +13,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from workers.pipeline.compare.visibility import DepthMap, seen_empty_counts
+from workers.pipeline.compare.visibility import DepthMap, depth_votes
 from workers.pipeline.geometry import (
     Mat4,
     Points,
@@ -213,14 +213,17 @@ def exclusion_factor(
 ) -> float:
     """1 − 3 × the share of (N, 3) posed model points where the object cannot be, at least
     0: more than ``band`` below the support plane (an object does not sink into the floor
-    it stands on) or more than ``band`` in front of the surface a camera of the capture saw
-    behind them (it does not fill space the cameras saw through: a hammer turned over
-    about its handle puts its claw there)."""
+    it stands on) or more than ``band`` in front of the surface that more cameras of the
+    capture saw behind them than saw a surface there (it does not fill space the cameras
+    saw through: a hammer turned over about its handle puts its claw there; a majority,
+    since a sparse stretch of the cloud, such as a far table top, leaves holes in single
+    z-buffers that show the floor through a real object)."""
     cannot = np.zeros(len(posed), dtype=bool)
     if support is not None:
         cannot |= posed @ support[:3] + support[3] < -band
     if free_space:
-        cannot[~cannot] = seen_empty_counts(posed[~cannot], free_space, band) > 0
+        empty, there = depth_votes(posed[~cannot], free_space, band)
+        cannot[~cannot] = empty > there
     return max(0.0, 1.0 - 3.0 * float(np.mean(cannot)))
 
 

@@ -136,16 +136,21 @@ def scene(work: Path, scenario: str, seed: int, synth: Any, tag: str, models: An
     return out
 
 
+#: SfM threads of every bench reconstruction: with one, a fresh reconstruction repeats
+#: bit for bit (multithreaded matching and mapping do not); the service keeps all cores
+BENCH_SFM_THREADS = 1
+
+
 def reconstruct_capture(
     work: Path, scene_dir: Path, capture: str, preset: str, reference_cloud: Path | None
 ) -> tuple[Path, dict[str, Any], bool]:
-    """Reconstruct ``capture`` like the snapshot job (intrinsics + markers, no poses), cached
-    by a hash of the images, options and reference cloud; returns (work dir, quality,
-    whether it was cached)."""
+    """Reconstruct ``capture`` like the snapshot job (intrinsics + markers, no poses) but
+    with ``BENCH_SFM_THREADS``, cached by a hash of the images, options and reference
+    cloud; returns (work dir, quality, whether it was cached)."""
     images = scene_dir / capture / "images"
     intrinsics = _declared_intrinsics(scene_dir, capture)
     reference = json.loads((scene_dir / "reference.json").read_text())
-    key = _hash_inputs(images, preset, intrinsics, reference, reference_cloud)
+    key = _hash_inputs(images, preset, BENCH_SFM_THREADS, intrinsics, reference, reference_cloud)
     out = work / "reconstructions" / key
     if (out / "quality.json").is_file() and (out / "cloud.ply").is_file():
         return out, json.loads((out / "quality.json").read_text()), True
@@ -153,7 +158,7 @@ def reconstruct_capture(
     res = reconstruct(
         images,
         out,
-        options_from_preset(preset),
+        options_from_preset(preset, num_threads=BENCH_SFM_THREADS),
         None if intrinsics is None else parse_cameras({"intrinsics": intrinsics}),
         reference,
         reference_cloud,

@@ -66,9 +66,10 @@ class PreparedModel:
     at ``voxel_m``; ``feature_points``/``feature_normals``: (K, 3) points carrying the
     ``fpfh`` (K, 33) descriptors (whole-model and per-view); ``centre_object``: (3,) centroid of the
     samples; ``up_object``: (3,) unit "up" of the object (model +z unless the file says
-    otherwise) used to choose among symmetric poses; ``symmetry``: see
-    :mod:`workers.pipeline.model.symmetry_group`; ``near_symmetries``: 4×4 rotations that almost map
-    the object onto itself (tried explicitly by pose estimation).
+    otherwise) used to choose among symmetric poses and upside-down near-ties;
+    ``symmetry``: see :mod:`workers.pipeline.model.symmetry_group`; ``near_symmetries``:
+    4×4 rotations that almost map the object onto itself (tried explicitly by pose
+    estimation).
     """
 
     name: str

@@ -40,16 +40,30 @@ REG = o3d.pipelines.registration
 @dataclass(frozen=True)
 class FitContext:
     """What every fit of one pose estimate shares: the model, the scene region, the
-    capture's ``free_space`` depth maps (one per camera) and the options."""
+    capture's ``free_space`` depth maps (one per camera), the options and the
+    environment's unit ``up_env`` (3,)."""
 
     model: PreparedModel
     region: SceneRegion
     free_space: Sequence[DepthMap]
     options: PoseOptions
+    up_env: NDArray[np.float64]
 
     def exclusion(self, posed: Points) -> float:
         """:func:`~workers.pipeline.pose.fit.exclusion_factor` of (N, 3) posed model points."""
         return exclusion_factor(posed, self.region.support, self.free_space, self.region.band_m)
+
+    def upright(self, env_from_object: Mat4) -> bool:
+        """:func:`upright` for this model and environment."""
+        return upright(env_from_object, self.model.up_object, self.up_env)
+
+
+def upright(
+    env_from_object: Mat4, up_object: NDArray[np.float64], up_env: NDArray[np.float64]
+) -> bool:
+    """Whether a 4×4 pose keeps the model's own up (3,) (how the library gives it) within
+    90° of the environment's up (3,)."""
+    return bool(env_from_object[:3, :3] @ up_object @ up_env > 0.0)
 
 
 @dataclass

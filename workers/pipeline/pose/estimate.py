@@ -69,7 +69,8 @@ def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) 
         if verdict.verified:
             break
     timings["rounds"] = float(round_ + 1)
-    return _Fit(fit, verdict, tuple(pool.trials), tuple(refiner.refined[1:]))
+    others = tuple(r for r in refiner.refined if r.trial is not fit.best)
+    return _Fit(fit, verdict, tuple(pool.trials), others)
 
 
 def estimate_pose(
@@ -110,7 +111,7 @@ def estimate_pose(
         "support_removed": float(region.support_removed),
         "prepare": time.perf_counter() - t_start,
     }
-    ctx = FitContext(model, region, free_space, options)
+    ctx = FitContext(model, region, free_space, options, inputs.up)
     rounds = _fit_rounds(ctx, inputs, timings)
     fit, verdict = rounds.refinement, rounds.verification
 

@@ -22,7 +22,7 @@ from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.geometry import Mat4, transform_points
 from workers.pipeline.model import PreparedModel
-from workers.pipeline.pose.candidates import distinct_pose
+from workers.pipeline.pose.candidates import distinct_pose, upright
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
@@ -33,6 +33,8 @@ POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
 #: any distinct near-tie before the tie counts as settled
 RIVAL_IOU_MARGIN = 0.1
+#: the environment's up: z (the markers' floor normal)
+UP_ENV = np.array([0.0, 0.0, 1.0])
 Progress = Callable[[str, float], None]
 
 
@@ -107,14 +109,20 @@ def pose_change(
     reasons = list(pose.rejections)
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
         # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
-        # bracket turned end for end): the detector's boxes choose among the near-ties, and
-        # settle the tie when one of them explains the boxes clearly best.
-        ranked = sorted(
-            [(check, chosen), *((check_of(alt), alt) for alt in _rivals(pose, model, options))],
-            key=lambda pair: -pair[0].mean_iou,
+        # bracket turned end for end): the detector's boxes choose among the near-ties that
+        # stand the same way up (a box cannot tell an object from itself upside down; the
+        # pose step chose that), and settle the tie when the choice explains the boxes
+        # clearly better than every near-tie.
+        up = upright(chosen, model.up_object, UP_ENV)
+        checked = [
+            (check, chosen),
+            *((check_of(alt), alt) for alt in _rivals(pose, model, options)),
+        ]
+        best_check, best_pose = max(
+            (pair for pair in checked if upright(pair[1], model.up_object, UP_ENV) == up),
+            key=lambda pair: pair[0].mean_iou,
         )
-        best_check, best_pose = ranked[0]
-        second_iou = ranked[1][0].mean_iou if len(ranked) > 1 else 0.0
+        second_iou = max((c.mean_iou for c, p in checked if p is not best_pose), default=0.0)
         if best_pose is not chosen and not model.symmetry.is_symmetric:
             quality.update(_fit_figures(model, scene, best_pose, pose.inlier_distance_m))
             quality["chosen_by"] = "reprojection"

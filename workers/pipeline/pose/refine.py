@@ -114,17 +114,54 @@ class Refiner:
         ) * self.ctx.exclusion(posed_mid)
         return Refined(score, pose, trial)
 
+    def _winner(self) -> Refined:
+        """The best refined pose, unless it is upside down (model up away from the
+        environment's) and an upright one that rests on the support (its lowest point
+        within ``max_sink_m`` of the plane, when there is one) scores within
+        ``max_runner_up_ratio`` of it: the scan cannot tell those apart, and a library
+        model is given resting on its base. Such a pose stays unverified (its rival counts
+        as the runner-up)."""
+        top = self.refined[0]
+        if self.ctx.upright(top.env_from_object):
+            return top
+        o, support = self.ctx.options, self.ctx.region.support
+
+        def rests(pose: Mat4) -> bool:
+            if support is None:
+                return True
+            lowest = float(np.min(transform_points(pose, self.mid_points) @ support[:3]))
+            return abs(lowest + float(support[3])) <= o.max_sink_m
+
+        return next(
+            (
+                r
+                for r in self.refined
+                if r.score >= o.max_runner_up_ratio * top.score
+                and self.ctx.upright(r.env_from_object)
+                and rests(r.env_from_object)
+            ),
+            top,
+        )
+
     def round(self, pool: CandidatePool) -> Refinement:
         """Step 3 for one round: refine the new best distinct candidates of ``pool``, then
         finish the best refined pose so far."""
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         v = m.voxel_m
         distinct = distinct_ranked(pool.trials, m.symmetry, m.diameter_m, m.centre_object)
-        for t in [t for t in distinct if id(t) not in self.refined_ids][: o.n_refine]:
+        picks = [t for t in distinct if id(t) not in self.refined_ids][: o.n_refine]
+        if distinct:
+            # the best start the other way up, too: a hollow object whose opening the scan
+            # closes, or a flat one, fits almost as well on its other face
+            up = self.ctx.upright(distinct[0].env_from_object)
+            other = next((t for t in distinct if self.ctx.upright(t.env_from_object) != up), None)
+            if other is not None and id(other) not in self.refined_ids and other not in picks:
+                picks.append(other)
+        for t in picks:
             self.refined_ids.add(id(t))
             self.refined.append(self._refine(t))
         self.refined.sort(key=lambda r: -r.score)
-        best = self.refined[0]
+        best = self._winner()
         slack = turn = 0.0
         icp_pose = icp_point_to_plane(
             m.points,
@@ -161,8 +198,9 @@ class Refiner:
         runner_up = next(
             (
                 r.score
-                for r in self.refined[1:]
-                if distinct_pose(
+                for r in self.refined
+                if r is not best
+                and distinct_pose(
                     r.env_from_object,
                     env_from_object,
                     m.symmetry,

@@ -19,8 +19,8 @@ from tests.workers.pipeline.compare_scene import (
 from workers.pipeline.compare import PRESETS, Camera, compare_snapshots
 from workers.pipeline.compare.visibility import (
     box_from_pixels,
+    depth_votes,
     render_depth,
-    seen_empty_counts,
     visible_points,
 )
 
@@ -58,7 +58,7 @@ def test_seen_empty_needs_a_surface_behind() -> None:
     behind = wall(0) - [3.0, 0, 0]  # new surface at x = −1.8: behind → seen empty
     in_front = wall(0)  # new surface at x = 1.2: in front → occluded, unknown
     counts = [
-        seen_empty_counts(old_points[:1], [render_depth(cam, c.astype(np.float32))])[0]
+        depth_votes(old_points[:1], [render_depth(cam, c.astype(np.float32))])[0][0]
         for c in (behind, in_front, np.zeros((0, 3)))  # none: nothing seen → unknown
     ]
     assert counts == [1, 0, 0]

@@ -25,7 +25,7 @@ from workers.pipeline.compare.thresholds import (
     cloud_stats,
     distance_stats,
 )
-from workers.pipeline.compare.visibility import DepthMap, covered_mask, seen_empty_counts
+from workers.pipeline.compare.visibility import DepthMap, covered_mask, depth_votes
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -173,7 +173,7 @@ def drop_unseen_removed(
     if not (options.check_seen_removed and maps_after is not None):
         return removed
     tol = (options.seen_tolerance_m, options.seen_tolerance_px)
-    seen = seen_empty_counts(before.points_env[removed.found], maps_after, *tol)
+    seen = depth_votes(before.points_env[removed.found], maps_after, *tol)[0]
     return dataclasses.replace(removed, found=removed.found[seen >= options.min_seen_views])
 
 
@@ -203,7 +203,7 @@ def unevidenced_added(
         return unevidenced
     # one pass over the cameras for all of them
     tol = (options.seen_tolerance_m, options.seen_tolerance_px)
-    seen = seen_empty_counts(after.points_env[np.concatenate(strict)], maps_before, *tol)
+    seen = depth_votes(after.points_env[np.concatenate(strict)], maps_before, *tol)[0]
     owner = np.repeat(np.arange(len(unknown)), [len(idx) for idx in strict])
     n_seen = np.bincount(owner[seen >= options.min_seen_views], minlength=len(unknown))
     for c, idx, k in zip(unknown, strict, n_seen, strict=True):

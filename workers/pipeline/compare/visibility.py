@@ -177,17 +177,6 @@ def depth_votes(
     return empty, there
 
 
-def seen_empty_counts(
-    points_env: FloatArray,
-    depth_maps: Sequence[DepthMap],
-    tol_m: float = 0.02,
-    tol_px: float = 2.0,
-) -> NDArray[np.int64]:
-    """For (N, 3) points of one capture, how many of the *other* capture's cameras see the
-    place as empty (:func:`depth_votes`' first count)."""
-    return depth_votes(points_env, depth_maps, tol_m, tol_px)[0]
-
-
 def covered_mask(
     points_env: FloatArray,
     depth_maps: Sequence[DepthMap],

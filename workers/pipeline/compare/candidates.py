@@ -238,13 +238,13 @@ def on_other_surface(
     anything stands or stood there. Sides follow ``check_seen_added`` / ``check_seen_removed``.
     """
     out: set[int] = set()
-    for side, distances, other, on in (
-        ("added", c2c.added, c2c.tree_before, options.check_seen_added),
-        ("removed", c2c.removed, c2c.tree_after, options.check_seen_removed),
+    for side, distances, own_tree, other, on in (
+        ("added", c2c.added, c2c.tree_after, c2c.tree_before, options.check_seen_added),
+        ("removed", c2c.removed, c2c.tree_before, c2c.tree_after, options.check_seen_removed),
     ):
         if not on:
             continue
-        own = np.asarray((c2c.tree_after if side == "added" else c2c.tree_before).data)
+        own = np.asarray(own_tree.data)
         threshold = thresholds_m[side]
         for c in clusters:
             if c.side != side or c.object_name is not None:

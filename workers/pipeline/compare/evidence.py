@@ -244,8 +244,8 @@ def name_move_ends(
     best for that class named by it, when that metric is at least
     ``twin_identify_threshold``, the two lie between ``swap_distance_factor`` × the class
     diameter (not the end's own place: the floor a removed object covered, say) and
-    ``moved_max_distance`` apart, and the capture
-    the candidate is missing from scores the class at its place below that threshold
+    ``moved_max_distance`` apart, and the capture the candidate is missing from scores the
+    class at its place below that threshold
     (unchanged when ``twin_identify_threshold`` is None). Clusters in ``pieces`` (ids of
     :func:`parts_of_standing_objects`: another standing instance of the class) are no
     candidates."""

@@ -227,6 +227,12 @@ def exclusion_factor(
     return max(0.0, 1.0 - 3.0 * float(np.mean(cannot)))
 
 
+def lowest_height(posed: Points, support: NDArray[np.float64]) -> float:
+    """Signed height (metres) of the lowest of (N, 3) posed points above the support plane
+    ``[n, d]`` (negative: sunk into it)."""
+    return float(np.min(posed @ support[:3])) + float(support[3])
+
+
 def out_of_support(
     env_from_object: Mat4,
     model_points: Points,
@@ -244,7 +250,7 @@ def out_of_support(
     if support is None or max_sink_m <= 0 or len(on_support) < 30:
         return env_from_object
     posed = transform_points(env_from_object, model_points)
-    lowest = float(np.min(posed @ support[:3])) + float(support[3])
+    lowest = lowest_height(posed, support)
     if not -max_sink_m <= lowest < 0.0:
         return env_from_object
     d, _ = cKDTree(posed).query(on_support, distance_upper_bound=clearance_m)

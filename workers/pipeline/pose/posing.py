@@ -33,7 +33,8 @@ POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
 #: any distinct near-tie before the tie counts as settled
 RIVAL_IOU_MARGIN = 0.1
-#: the environment's up: z (the markers' floor normal)
+#: the environment's up: z (the markers' floor normal); the pose step and the box
+#: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
 Progress = Callable[[str, float], None]
 
@@ -88,6 +89,7 @@ def pose_change(
             scene,
             cluster_points_env=change.cluster.points_env,
             previous_env_from_object=change.previous_env_from_object,
+            up_env=UP_ENV,
             free_space=depth_maps or (),
             options=options,
         )

@@ -32,6 +32,7 @@ from workers.pipeline.pose.fit import (
     ModelSurface,
     fit_scene_to_model,
     icp_point_to_plane,
+    lowest_height,
     normalised,
     out_of_support,
     rotation_slack_deg,
@@ -129,8 +130,8 @@ class Refiner:
         def rests(pose: Mat4) -> bool:
             if support is None:
                 return True
-            lowest = float(np.min(transform_points(pose, self.mid_points) @ support[:3]))
-            return abs(lowest + float(support[3])) <= o.max_sink_m
+            posed = transform_points(pose, self.mid_points)
+            return abs(lowest_height(posed, support)) <= o.max_sink_m
 
         return next(
             (
@@ -143,21 +144,27 @@ class Refiner:
             top,
         )
 
+    def _picks(self, distinct: list[Trial]) -> list[Trial]:
+        """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best
+        first) not refined yet, and the best one the other way up from the best (a hollow
+        object whose opening the scan closes, or a flat one, fits almost as well on its
+        other face) when it is neither."""
+        picks = [t for t in distinct if id(t) not in self.refined_ids][: self.ctx.options.n_refine]
+        if distinct:
+            up = self.ctx.upright(distinct[0].env_from_object)
+            other = next((t for t in distinct if self.ctx.upright(t.env_from_object) != up), None)
+            taken = self.refined_ids | {id(t) for t in picks}
+            if other is not None and id(other) not in taken:
+                picks.append(other)
+        return picks
+
     def round(self, pool: CandidatePool) -> Refinement:
         """Step 3 for one round: refine the new best distinct candidates of ``pool``, then
         finish the best refined pose so far."""
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         v = m.voxel_m
         distinct = distinct_ranked(pool.trials, m.symmetry, m.diameter_m, m.centre_object)
-        picks = [t for t in distinct if id(t) not in self.refined_ids][: o.n_refine]
-        if distinct:
-            # the best start the other way up, too: a hollow object whose opening the scan
-            # closes, or a flat one, fits almost as well on its other face
-            up = self.ctx.upright(distinct[0].env_from_object)
-            other = next((t for t in distinct if self.ctx.upright(t.env_from_object) != up), None)
-            if other is not None and id(other) not in self.refined_ids and other not in picks:
-                picks.append(other)
-        for t in picks:
+        for t in self._picks(distinct):
             self.refined_ids.add(id(t))
             self.refined.append(self._refine(t))
         self.refined.sort(key=lambda r: -r.score)

@@ -263,3 +263,20 @@ def test_patches_of_one_level_are_one_support_with_the_floor_noise() -> None:
     heights, owner = standing_heights(flat, supports)
     assert (owner == 0).all()
     assert np.mean(heights > 3.0 * floor.noise_m) > 0.95
+
+
+def test_a_table_top_reconstructed_with_holes_is_still_a_support() -> None:
+    """A plain table top whose cloud has holes (4 of 10 blocks of 6 cm kept): the closing
+    bridges them, where one cell of closing left patches each smaller than a support."""
+    rng = np.random.default_rng(3)
+    top = table_top(rng)
+    block = np.floor(top[:, :2] / 0.06).astype(int)
+    keys, inverse = np.unique(block, axis=0, return_inverse=True)
+    top = top[(rng.uniform(size=len(keys)) < 0.4)[inverse.ravel()]]
+    scene = capture([crate(0.6, 0.3)], CAMS, seed=1, extra=top)
+    supports = find_supports(scene.points_env, 0.6, InventoryOptions())
+    assert [s.name for s in supports] == ["floor", "surface_1"]
+    assert supports[1].height_m == pytest.approx(0.6, abs=0.003)
+    assert supports[1].area_m2 > 0.25
+    one_cell = find_supports(scene.points_env, 0.6, InventoryOptions(support_closing_cells=1))
+    assert [s.name for s in one_cell] == ["floor"]

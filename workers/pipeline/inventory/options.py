@@ -44,6 +44,9 @@ class InventoryOptions:
     # ... and at least this × the largest library diameter squared (an object's top is
     # not a support)
     support_area_diameters: float = 0.5
+    # closing of a slab's raster before the opening, cells: bridges the holes of a sparsely
+    # reconstructed top (a plain table); lower if separate surfaces of one height merge
+    support_closing_cells: int = 3
     # opening of the footprint raster, cells (removes walls: thin lines in the raster)
     support_opening_cells: int = 2
     # holes of the footprint up to this × the largest library diameter are filled (the
@@ -95,8 +98,9 @@ class InventoryOptions:
                 raise InputError(f"inventory option {name} must be ≥ 0")
         if self.grow_band_factor >= 1:
             raise InputError("inventory option grow_band_factor must be < 1")
-        if self.support_opening_cells < 0:
-            raise InputError("inventory option support_opening_cells must be ≥ 0")
+        for name in ("support_closing_cells", "support_opening_cells"):
+            if getattr(self, name) < 0:
+                raise InputError(f"inventory option {name} must be ≥ 0")
         self.compare_options()  # InputError now rather than mid-job
         self.pose_options()
 

@@ -206,8 +206,10 @@ def find_supports(
         ij = np.floor((points_env[in_slab, :2] - lo_xy) / cell).astype(np.int64)
         raster = np.zeros((shape_wh[1], shape_wh[0]), dtype=bool)
         raster[ij[:, 1], ij[:, 0]] = True
-        # one cell of closing first: a slab sampled sparser than the cell is still a surface
-        solid = ndimage.binary_closing(raster, iterations=1)
+        # closing first: a slab sampled sparser than the cell, or with holes, is a surface
+        solid = raster
+        if options.support_closing_cells > 0:
+            solid = ndimage.binary_closing(raster, iterations=options.support_closing_cells)
         if opening > 0:
             solid = ndimage.binary_opening(solid, iterations=opening)
         labels, n = ndimage.label(solid, structure=np.ones((3, 3)))

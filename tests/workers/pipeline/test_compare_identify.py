@@ -5,7 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.pipeline.compare.identify import containment, identify, iou_matrix, yolo_to_boxes
+from workers.pipeline.compare.identify import (
+    containment,
+    identify,
+    iou_matrix,
+    margins_px,
+    yolo_to_boxes,
+)
 from workers.pipeline.errors import ComparisonError
 
 
@@ -52,3 +58,35 @@ def test_cluster_never_visible_scores_zero_and_bad_class_raises() -> None:
         identify(
             [{0: np.array([0.0, 0, 1, 1])}], [(np.array([[0.0, 0, 1, 1]]), np.array([3]))], ["a"]
         )
+
+
+def _noisy_metric(size_px: tuple[float, float], margin_px: float, gap_px: float = 0.0) -> float:
+    """Metric over 40 images of a box of ``size_px`` whose cluster box and detection box
+    each carry σ 2 px edge noise (the detection ``gap_px`` to the right when given)."""
+    rng = np.random.default_rng(0)
+    w, h = size_px
+    truth = np.array([100.0, 100.0, 100.0 + w, 100.0 + h])
+    cluster, dets = {}, []
+    for i in range(40):
+        cluster[i] = truth + rng.normal(0, 2.0, 4)
+        det = truth + rng.normal(0, 2.0, 4) + np.array([1, 0, 1, 0]) * (w + gap_px) * (gap_px > 0)
+        dets.append((det[None, :], np.array([0])))
+    margins = np.full(40, margin_px)
+    return float(identify([cluster], dets, ["a"], margins).metric[0, 0])
+
+
+def test_a_margin_lifts_a_small_objects_iou_from_the_detectors_noise() -> None:
+    """A padlock-sized box (14 × 9 px) scores far below a large one from σ 2 px edge noise
+    alone; a 4 px margin lifts it past 0.5 and moves the large one little, and a box 12 px
+    beside another still does not overlap it."""
+    small, large = (14.0, 9.0), (200.0, 150.0)
+    assert _noisy_metric(small, 0.0) < 0.5
+    assert _noisy_metric(small, 4.0) > _noisy_metric(small, 0.0) + 0.1
+    assert _noisy_metric(small, 4.0) > 0.5
+    assert abs(_noisy_metric(large, 4.0) - _noisy_metric(large, 0.0)) < 0.03
+    assert _noisy_metric(small, 4.0, gap_px=12.0) < 0.05
+    cams = [
+        type("C", (), {"width": 800, "height": 600})(),
+        type("C", (), {"width": 600, "height": 960})(),
+    ]
+    np.testing.assert_allclose(margins_px(cams, 0.005), [4.0, 4.8])

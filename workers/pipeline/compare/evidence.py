@@ -44,6 +44,7 @@ from workers.pipeline.compare.identify import (
     IdentificationTable,
     containment,
     identify,
+    margins_px,
     yolo_to_boxes,
 )
 from workers.pipeline.compare.options import CompareOptions
@@ -108,7 +109,7 @@ def cross_capture_table(
         for cam in other.cameras
     ]
     boxes = [occurrence_boxes(c.points_env, other, other_maps, options) for c in clusters]
-    return identify(boxes, dets, classes)
+    return identify(boxes, dets, classes, margins_px(other.cameras, options.box_margin))
 
 
 def still_there(

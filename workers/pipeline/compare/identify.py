@@ -5,12 +5,16 @@ For a cluster c and a class k over the images of the cluster's capture:
 a class-k detection box overlaps c's box (IoU > 0); ``mean_iou_k`` = the mean, over those
 overlapping images, of the best IoU with a class-k box; and
 ``metric_k = mean_iou_k × overlaps_k / occurrences`` (= Σ best IoU / occurrences).
+
+Both boxes may be padded by a margin per image before their IoU (the detector's box noise:
+a few pixels that would otherwise cap a small object's IoU far below a large one's).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +33,16 @@ def yolo_to_boxes(rows: FloatArray, width: int, height: int) -> tuple[FloatArray
     hw, hh = rows[:, 3] * width / 2, rows[:, 4] * height / 2
     boxes = np.column_stack([cx - hw, cy - hh, cx + hw, cy + hh])
     return boxes, np.rint(rows[:, 0]).astype(np.int64)
+
+
+def margins_px(cameras: Sequence[Any], fraction: float) -> FloatArray:
+    """(I,) box margin of each camera's image: ``fraction`` of its longer side, pixels."""
+    return np.asarray([fraction * max(c.width, c.height) for c in cameras], dtype=np.float64)
+
+
+def _padded(boxes: FloatArray, margin_px: float) -> FloatArray:
+    """(M, 4) boxes ``[x1, y1, x2, y2]`` grown by ``margin_px`` on every side."""
+    return np.asarray(boxes + np.array([-margin_px, -margin_px, margin_px, margin_px]), np.float64)
 
 
 def _intersection(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -84,12 +98,14 @@ def identify(
     cluster_boxes: Sequence[Mapping[int, FloatArray]],
     detection_boxes: Sequence[tuple[FloatArray, IntArray]],
     classes: Sequence[str],
+    margins: FloatArray | None = None,
 ) -> IdentificationTable:
     """The full identification table.
 
     ``cluster_boxes[c]`` maps an image index to cluster c's (4,) box in that image (only
     images where it is visible); ``detection_boxes[i]`` is image i's ((M, 4) boxes, (M,)
-    class ids). Raises ComparisonError for a class id outside ``classes``.
+    class ids); ``margins[i]`` image i's box margin, pixels (None: none). Raises
+    ComparisonError for a class id outside ``classes``.
     """
     n_c, n_k = len(cluster_boxes), len(classes)
     occ = np.zeros(n_c, dtype=np.int64)
@@ -105,7 +121,8 @@ def identify(
                 raise ComparisonError(
                     f"detection class id out of range 0..{n_k - 1} in image {img}"
                 )
-            ious = iou_matrix(box[None, :], det)[0]
+            pad = 0.0 if margins is None else float(margins[img])
+            ious = iou_matrix(_padded(box[None, :], pad), _padded(det, pad))[0]
             best = np.zeros(n_k)
             np.maximum.at(best, cls, ious)
             hit = best > 0

@@ -189,6 +189,9 @@ class CompareOptions:
     # identification and change types
     # smallest identification metric (mean IoU × overlaps / occurrences) that names a cluster
     identify_threshold: float = 0.5
+    # both boxes of an IoU are padded by this fraction of the image's longer side: about
+    # twice the detector's box-edge noise; raise for a noisier detector
+    box_margin: float = 0.005
     # a removed and an added cluster of one class further apart than this are not a move, metres
     moved_max_distance: float = 5.0
     # a swap's clusters lie closer than this × the larger of the two diameters
@@ -236,6 +239,8 @@ class CompareOptions:
             raise InputError("option box_percentile must be in [0, 50)")
         if not 0.0 <= self.min_seen_fraction <= 1.0:
             raise InputError("option min_seen_fraction must be in [0, 1]")
+        if not 0.0 <= self.box_margin < 0.1:
+            raise InputError("option box_margin must be in [0, 0.1)")
         self._check_evidence_options()
         if isinstance(self.threshold, Mapping):
             object.__setattr__(self, "threshold", ThresholdSpec.from_json(self.threshold))
@@ -296,6 +301,7 @@ PRESETS: dict[str, CompareOptions] = {
         stats_region="all",
         use_visibility=False,
         box_percentile=0.0,
+        box_margin=0.0,
         check_seen_removed=False,
         check_seen_added=False,
         grow_threshold=None,

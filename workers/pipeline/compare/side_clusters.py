@@ -28,6 +28,7 @@ from workers.pipeline.compare.identify import (
     IdentificationTable,
     containment,
     identify,
+    margins_px,
     yolo_to_boxes,
 )
 from workers.pipeline.compare.options import CompareOptions
@@ -269,5 +270,6 @@ def side_clusters(
     dets = _detections(side.capture)
     merged = _merge_and_grow(groups, side, dets, library, options)
     boxes = [_boxes(p, options.box_percentile, options.min_box_area_px) for p in merged.pixels]
-    table = identify(boxes, dets, library.classes)
+    margins = margins_px(side.capture.cameras, options.box_margin)
+    table = identify(boxes, dets, library.classes, margins)
     return _cluster_results(side, merged, boxes, table, library.classes, options)

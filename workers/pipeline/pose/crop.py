@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 from numpy.typing import ArrayLike, NDArray
+from scipy.spatial import cKDTree
 
 from workers.pipeline.errors import InputError, RegistrationError, ShapeError
 from workers.pipeline.geometry import Mat4, Points, as_mat4, as_points
@@ -137,6 +138,33 @@ def _orient_scene_normals(
     return out
 
 
+def _refit_plane(
+    points: Points,
+    inliers: NDArray[np.bool_],
+    up: NDArray[np.float64],
+    rounds: int = 3,
+) -> NDArray[np.float64]:
+    """The plane (4,) ``[n, d]`` (n toward ``up``) of the (N, 3) points' ``inliers``, refitted
+    on the inliers within 3 robust σ of each fit: a narrow band around a RANSAC plane keeps
+    that plane's tilt (three noisy points' tilt, about a degree on a 2 mm noisy floor)."""
+    plane = np.zeros(4)
+    for i in range(rounds + 1):
+        pick = points[inliers]
+        centre = pick.mean(axis=0)
+        normal = np.linalg.svd(pick - centre, full_matrices=False)[2][2]
+        normal = normal if normal @ up > 0 else -normal
+        plane = np.append(normal, -normal @ centre)
+        if i == rounds:
+            break
+        resid = points @ plane[:3] + plane[3]
+        sigma = 1.4826 * float(np.median(np.abs(resid[inliers])))
+        wider = np.abs(resid) < max(3.0 * sigma, 1e-4)
+        if wider.sum() < 3:
+            break
+        inliers = wider
+    return plane
+
+
 def support_plane(
     points: Points,
     normals: Points,
@@ -166,13 +194,14 @@ def support_plane(
         sample = horizontal[rng.choice(len(horizontal), min(len(horizontal), 2000), replace=False)]
         counts = (np.abs(sample @ n.T + d) < band / 2).sum(axis=0)
         best = int(np.argmax(counts))
-        inliers = horizontal[np.abs(horizontal @ n[best] + d[best]) < band / 2]
-        if len(inliers) < 0.1 * len(horizontal):
+        inliers = np.abs(horizontal @ n[best] + d[best]) < band / 2
+        if inliers.sum() < 0.1 * len(horizontal):
             return None
-        centre = inliers.mean(axis=0)
-        normal = np.linalg.svd(inliers - centre, full_matrices=False)[2][2]
-        normal = normal if normal @ up > 0 else -normal
-        out = np.append(normal, -normal @ centre)
+        # the plane's own points away from the object: its foot smears the floor upward
+        away = np.isinf(cKDTree(cluster).query(horizontal, distance_upper_bound=2 * band)[0])
+        if (inliers & away).sum() < 30:
+            away[:] = True
+        out = _refit_plane(horizontal[away], inliers[away], up)
         if out[:3] @ up < np.cos(np.radians(10.0)):
             return None
         if float(np.median(cluster @ out[:3] + out[3])) > band:

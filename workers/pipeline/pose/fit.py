@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, cKDTree
 
 from workers.pipeline.compare.visibility import DepthMap, depth_votes
 from workers.pipeline.geometry import (
@@ -86,11 +86,16 @@ class ModelSurface:
 
 
 def _tukey_step(
-    surface: ModelSurface, scene: Points, pose: Mat4, reach_m: float, sigma_floor_m: float
+    surface: ModelSurface,
+    scene: Points,
+    pose: Mat4,
+    reach_m: float,
+    sigma_floor_m: float,
+    free: NDArray[np.float64],
 ) -> tuple[NDArray[np.float64] | None, float, NDArray[np.float64]]:
-    """One Gauss-Newton step of :func:`fit_scene_to_model`: (6,) [rotation vector,
-    translation] to left-multiply (None when < 10 pairs), the Tukey width used (metres) and
-    the (M,) weights of the scene points."""
+    """One Gauss-Newton step of :func:`fit_scene_to_model` within the span of the (6, F)
+    ``free`` directions: (6,) [rotation vector, translation] to left-multiply (None when
+    < 10 pairs), the Tukey width used (metres) and the (M,) weights of the scene points."""
     rot, t = pose[:3, :3], pose[:3, 3]
     d, idx = surface.tree.query((scene - t) @ rot, distance_upper_bound=reach_m)
     ok = np.isfinite(d)
@@ -103,12 +108,22 @@ def _tukey_step(
     width = min(4.685 * max(1.4826 * float(np.median(np.abs(r))), sigma_floor_m), reach_m)
     w = np.where(np.abs(r) < width, (1.0 - (r / width) ** 2) ** 2, 0.0)
     weights[ok] = w
-    jac = np.hstack([np.cross(p, n), n]) * np.sqrt(w)[:, None]
+    jac = np.hstack([np.cross(p, n), n]) * np.sqrt(w)[:, None] @ free
     try:
-        x = np.linalg.solve(jac.T @ jac + 1e-12 * np.eye(6), -jac.T @ (r * np.sqrt(w)))
+        y = np.linalg.solve(jac.T @ jac + 1e-12 * np.eye(free.shape[1]), -jac.T @ (r * np.sqrt(w)))
     except np.linalg.LinAlgError:
         return None, width, weights
-    return x, width, weights
+    return free @ y, width, weights
+
+
+def _plane_motions(normal: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(6, 3) motions of a rigid body on a plane of unit ``normal``: the turn about it and
+    the two shifts across it, as [rotation vector, translation] columns."""
+    n = normalised(np.asarray(normal, dtype=np.float64)[None, :])[0]
+    u, v = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2].T
+    free = np.zeros((6, 3))
+    free[:3, 0], free[3:, 1], free[3:, 2] = n, u, v
+    return free
 
 
 def fit_scene_to_model(
@@ -118,11 +133,14 @@ def fit_scene_to_model(
     reach_m: float,
     iters: int,
     sigma_floor_m: float = 0.0005,
+    plane_normal: NDArray[np.float64] | None = None,
 ) -> tuple[Mat4, NDArray[np.float64]]:
     """Refine ``init`` (env_from_object) by the (M, 3) scene points' distances to the model's
     tangent planes: each scene point within ``reach_m`` pairs with its nearest model sample
     and is weighted by Tukey's biweight at 4.685 × the residuals' robust σ (1.4826 × MAD,
     at least ``sigma_floor_m``; at most ``reach_m``). Returns (pose, (M,) final weights).
+    ``plane_normal`` (3,) unit: only turns about it and shifts across it (an object resting
+    on a plane keeps its tilt and height).
 
     The model is exact and the scan is the measurement, so the residuals are the scan's
     errors: no scene normals (blurred over 2 voxels on a noisy scan), no hidden model parts
@@ -131,8 +149,9 @@ def fit_scene_to_model(
     a neighbour) falls outside the biweight."""
     pose = init.copy()
     weights = np.zeros(len(scene))
+    free = np.eye(6) if plane_normal is None else _plane_motions(plane_normal)
     for _ in range(iters):
-        x, _, weights = _tukey_step(surface, scene, pose, reach_m, sigma_floor_m)
+        x, _, weights = _tukey_step(surface, scene, pose, reach_m, sigma_floor_m, free)
         if x is None:
             break
         step = np.eye(4)
@@ -247,15 +266,58 @@ def out_of_support(
     at least 30 of the (M, 3) scene points ``on_support`` lie more than ``clearance_m`` from
     the posed model (an object's own flat face is no floor). Stereo rounds an object's top
     edges down, so ICP onto a reconstruction tends to sink the pose."""
-    if support is None or max_sink_m <= 0 or len(on_support) < 30:
+    if support is None or max_sink_m <= 0:
         return env_from_object
     posed = transform_points(env_from_object, model_points)
     lowest = lowest_height(posed, support)
-    if not -max_sink_m <= lowest < 0.0:
-        return env_from_object
-    d, _ = cKDTree(posed).query(on_support, distance_upper_bound=clearance_m)
-    if int(np.count_nonzero(~np.isfinite(d))) < 30:
+    if not -max_sink_m <= lowest < 0.0 or not plane_beyond(posed, on_support, clearance_m):
         return env_from_object
     out = env_from_object.copy()
     out[:3, 3] -= lowest * support[:3]
     return out
+
+
+def plane_beyond(posed: Points, on_support: Points, clearance_m: float) -> bool:
+    """Whether the support plane reaches beyond the (N, 3) posed model: at least 30 of the
+    (M, 3) scene points ``on_support`` lie more than ``clearance_m`` from it (an object's
+    own flat face is no floor)."""
+    if len(on_support) < 30:
+        return False
+    d, _ = cKDTree(posed).query(on_support, distance_upper_bound=clearance_m)
+    return int(np.count_nonzero(~np.isfinite(d))) >= 30
+
+
+def hull_normals(points_object: Points) -> NDArray[np.float64]:
+    """(F, 3) unit outward normals of the faces of the convex hull of (N ≥ 4, 3) model
+    points (object frame): the faces an object can rest on."""
+    return np.asarray(ConvexHull(points_object).equations[:, :3], dtype=np.float64)
+
+
+def resting_turn(
+    rotation: NDArray[np.float64],
+    bases_object: NDArray[np.float64],
+    faces_object: NDArray[np.float64],
+    up: NDArray[np.float64],
+    max_tilt_deg: float,
+) -> NDArray[np.float64] | None:
+    """The smallest (3, 3) turn that sets a face of an object turned by ``rotation`` flat on
+    a level support: of the (B, 3) outward normals ``bases_object`` (object frame: the
+    faces it is meant to stand on), the one nearest down (−``up``) when within
+    ``max_tilt_deg``, else of the (F, 3) ``faces_object``, turned exactly down. None when
+    no face is that near (the object leans on something, or is not at rest)."""
+    down = -normalised(np.asarray(up, dtype=np.float64)[None, :])[0]
+    limit = np.cos(np.radians(max_tilt_deg))
+    face = None
+    for normals in (bases_object @ rotation.T, faces_object @ rotation.T):
+        cos_all = normals @ down
+        if len(cos_all) and cos_all.max() >= limit:
+            face = normals[int(np.argmax(cos_all))]
+            break
+    if face is None:
+        return None
+    cos = float(np.clip(face @ down, -1.0, 1.0))
+    axis = np.cross(face, down)
+    sin = float(np.linalg.norm(axis))
+    if sin < 1e-12:
+        return np.eye(3)
+    return rotation_from_rotvec(axis / sin * np.arctan2(sin, cos))

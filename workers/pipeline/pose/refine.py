@@ -2,12 +2,13 @@
 
 The best ``n_refine`` distinct candidates not refined yet (across rounds) are refined by
 multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` → ``0.25v``,
-pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels``, where
-near-symmetric alternatives separate. The winner gets a last ICP on every model point and
-then a fit of the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`,
-robust, scene to model), kept unless it turned the ICP's pose by more than
-``max_final_turn_deg``, and is lifted onto its support when it sank into it; that turn
-and the rotation the residual level hides
+pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels`` on the
+model points a camera could see (not those resting on the support), where near-symmetric
+alternatives separate. The winner gets a last ICP on every model point and then a fit of
+the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene
+to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
+lifted onto its support when it sank into it, and set flat on it when it nearly rests
+there (``rest_max_tilt_deg``); that turn and the rotation the residual level hides
 (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) say how well the scan holds it.
 """
 
@@ -31,10 +32,13 @@ from workers.pipeline.pose.candidates import (
 from workers.pipeline.pose.fit import (
     ModelSurface,
     fit_scene_to_model,
+    hull_normals,
     icp_point_to_plane,
     lowest_height,
     normalised,
     out_of_support,
+    plane_beyond,
+    resting_turn,
     rotation_slack_deg,
     truncated_score,
 )
@@ -83,6 +87,8 @@ class Refiner:
     mid_points: Points
     mid_normals: Points
     surface: ModelSurface
+    rest_bases: Points
+    hull_faces: Points
     refined: list[Refined] = field(default_factory=list)
     refined_ids: set[int] = field(default_factory=set)
 
@@ -98,6 +104,10 @@ class Refiner:
             np.asarray(model_mid.points),
             normalised(np.asarray(model_mid.normals)),
             ModelSurface(m.points, m.normals),
+            # the base the library gives the model resting on, and its symmetric
+            # equivalents (a can stands on either end)
+            np.vstack([-m.up_object, *(-r[:3, :3] @ m.up_object for r in m.symmetry.rotations)]),
+            hull_normals(m.points),
         )
 
     def _refine(self, trial: Trial) -> Refined:
@@ -111,9 +121,26 @@ class Refiner:
             )
         posed_mid = transform_points(pose, self.mid_points)
         score = truncated_score(
-            target.tree, posed_mid, o.fine_score_voxels * v
+            target.tree, self._in_view(pose), o.fine_score_voxels * v
         ) * self.ctx.exclusion(posed_mid)
         return Refined(score, pose, trial)
+
+    def _in_view(self, pose: Mat4) -> Points:
+        """The (N, 3) posed mid-sample model points a camera could see: not on the support
+        (within its band: the scene has no point there) nor facing down at it within two
+        voxels (under an object resting there no camera looks: a mug upright hides its
+        base, upside down only its rim)."""
+        posed = transform_points(pose, self.mid_points)
+        region = self.ctx.region
+        if region.support is None:
+            return posed
+        n = region.support[:3]
+        height = posed @ n + region.support[3]
+        facing = self.mid_normals @ pose[:3, :3].T @ n
+        hidden = (height <= region.band_m) | (
+            (facing < -0.7) & (height < 2 * self.ctx.model.voxel_m)
+        )
+        return posed[~hidden] if np.count_nonzero(~hidden) >= 10 else posed
 
     def _winner(self) -> Refined:
         """The best refined pose, unless it is upside down (model up away from the
@@ -143,6 +170,40 @@ class Refiner:
             ),
             top,
         )
+
+    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> Mat4:
+        """``pose`` set flat on its support when it nearly rests there: its lowest point
+        within ``max_sink_m`` of the plane (which reaches beyond it) and its base (−up of
+        the model: the library gives models resting on it), else its hull face nearest the
+        plane, within ``rest_max_tilt_deg`` of flat. That face is turned flat
+        about the object's centre, the turn about the plane's normal and the shift across
+        it refitted by the scan-to-model fit on the (M, 3) ``scene`` points, and the lowest
+        point set on the plane. Objects stand on their supports: the plane, fitted on
+        thousands of floor points, holds the tilt and height better than the object's own
+        few hundred. Otherwise ``pose`` unchanged."""
+        m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
+        if support is None or o.rest_max_tilt_deg <= 0:
+            return pose
+        posed = transform_points(pose, m.points)
+        on_support = self.ctx.region.on_support
+        if abs(lowest_height(posed, support)) > o.max_sink_m or not plane_beyond(
+            posed, on_support, 2 * m.voxel_m
+        ):
+            return pose
+        turn = resting_turn(
+            pose[:3, :3], self.rest_bases, self.hull_faces, support[:3], o.rest_max_tilt_deg
+        )
+        if turn is None:
+            return pose
+        centre = pose[:3, :3] @ m.centre_object + pose[:3, 3]
+        rested = np.eye(4)
+        rested[:3, :3] = turn @ pose[:3, :3]
+        rested[:3, 3] = turn @ (pose[:3, 3] - centre) + centre
+        rested, _ = fit_scene_to_model(
+            self.surface, scene, rested, reach_m, o.final_max_iterations, plane_normal=support[:3]
+        )
+        rested[:3, 3] -= lowest_height(transform_points(rested, m.points), support) * support[:3]
+        return rested
 
     def _picks(self, distinct: list[Trial]) -> list[Trial]:
         """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best
@@ -179,14 +240,14 @@ class Refiner:
             o.icp_max_iterations,
         )
         env_from_object = icp_pose
+        reach = min(o.final_reach_voxels * v, o.max_inlier_distance_m)
+        # the scan near the pose (within two reaches of the posed model) is all the final
+        # fits can pair
+        near, _ = cKDTree(transform_points(icp_pose, m.points)).query(
+            region.target_fine.points, distance_upper_bound=2 * reach
+        )
+        scene = region.target_fine.points[np.isfinite(near)]
         if o.final_fit == "scene_to_model":
-            reach = min(o.final_reach_voxels * v, o.max_inlier_distance_m)
-            # the scan near the pose (within two reaches of the posed model) is all the
-            # fit can pair
-            near, _ = cKDTree(transform_points(icp_pose, m.points)).query(
-                region.target_fine.points, distance_upper_bound=2 * reach
-            )
-            scene = region.target_fine.points[np.isfinite(near)]
             fitted, weights = fit_scene_to_model(
                 self.surface, scene, icp_pose, reach, o.final_max_iterations
             )
@@ -202,6 +263,7 @@ class Refiner:
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
+        env_from_object = self._at_rest(env_from_object, scene, reach)
         runner_up = next(
             (
                 r.score

@@ -38,8 +38,10 @@ class CanonicalPose:
 def colour_agreement(
     model: PreparedModel, env_from_object: Mat4, target: Target, dist: float
 ) -> float:
-    """Correlation (channel means removed) of the model's colours with the colours of the
-    nearest scene points within ``dist`` metres; NaN without colours or with < 100 pairs."""
+    """Correlation of the model's colours with the colours of the nearest scene points
+    within ``dist`` metres, each side's mean removed per face direction (the posed model
+    normal's nearest of ±x, ±y, ±z: light shades each face by its direction, the texture
+    varies within it); NaN without colours or with < 100 pairs."""
     if model.colors is None or target.colors is None:
         return float("nan")
     d, idx = target.tree.query(
@@ -48,8 +50,14 @@ def colour_agreement(
     ok = np.isfinite(d)
     if ok.sum() < 100:
         return float("nan")
-    a = model.colors[ok] - model.colors[ok].mean(axis=0)
-    b = target.colors[idx[ok]] - target.colors[idx[ok]].mean(axis=0)
+    a, b = model.colors[ok].copy(), target.colors[idx[ok]].copy()
+    normals = model.normals[ok] @ env_from_object[:3, :3].T
+    axis = np.argmax(np.abs(normals), axis=1)
+    face = 2 * axis + (normals[np.arange(len(axis)), axis] > 0)
+    for f in np.unique(face):
+        mine = face == f
+        a[mine] -= a[mine].mean(axis=0)
+        b[mine] -= b[mine].mean(axis=0)
     den = float(np.sqrt((a * a).sum() * (b * b).sum()))
     return float((a * b).sum() / den) if den > 0 else float("nan")
 

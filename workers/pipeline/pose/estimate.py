@@ -73,6 +73,17 @@ def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) 
     return _Fit(fit, verdict, tuple(pool.trials), others)
 
 
+def _unsettled(model: PreparedModel, chosen_by: str) -> tuple[str, ...]:
+    """Why a pose cannot be verified although it fits: an object whose shape repeats under
+    a discrete symmetry but whose appearance does not (a label, wood grain) is right only
+    as the equivalent colour chose; any other choice is a guess among equally good fits."""
+    symmetry = model.symmetry
+    if symmetry.kind != "discrete" or not symmetry.appearance_breaks or chosen_by == "colour":
+        return ()
+    n = len(symmetry.rotations)
+    return (f"colour does not settle which of its {n} symmetric equivalents it is",)
+
+
 def estimate_pose(
     model: PreparedModel,
     scene: SceneCloud,
@@ -121,6 +132,7 @@ def estimate_pose(
     canonical = canonical_pose(
         fit.env_from_object, model, inputs.up, inputs.previous, colour, options.colour_margin
     )
+    rejections = verdict.rejections + _unsettled(model, canonical.chosen_by)
     timings["total"] = time.perf_counter() - t_start
     return PoseResult(
         env_from_object=canonical.env_from_object,
@@ -130,8 +142,8 @@ def estimate_pose(
         score=fit.score,
         runner_up_score=fit.runner_up,
         cluster_coverage=verdict.cluster_coverage,
-        verified=verdict.verified,
-        rejections=verdict.rejections,
+        verified=not rejections,
+        rejections=rejections,
         ambiguous=model.symmetry.is_symmetric,
         equivalent_poses=canonical.equivalents,
         symmetry_axis_env=canonical.axis_env,

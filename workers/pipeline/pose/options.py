@@ -72,7 +72,7 @@ class PoseOptions:
     # least share of cluster points the posed model explains for ``verified``
     min_cluster_coverage: float = 0.85
     # colour correlation margin that picks a symmetric object's equivalent pose (a label)
-    colour_margin: float = 0.1
+    colour_margin: float = 0.02
     # support-plane band, voxels (≤ max_inlier_distance_m): removed, penalised below; 0 = off
     support_band_voxels: float = 0.5
     # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables

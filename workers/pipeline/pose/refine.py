@@ -59,12 +59,13 @@ class Refined:
 
 @dataclass(frozen=True)
 class Refinement:
-    """The winner of one round: ``env_from_object`` after the last ICP and support lift,
-    its fine ``score``, the ``runner_up`` (fine score of the best distinct other refined
-    pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
+    """The winner of one round: ``env_from_object`` after the last fits and the support
+    steps, its fine ``score``, the ``runner_up`` (fine score of the best distinct other
+    refined pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
     ``inlier_distance_m`` of the scene, the ``best`` trial it came from and the
     ``rotation_slack_deg`` its residual level hides, and ``final_turn_deg``, how far the
-    scan-to-model fit turned the ICP's pose modulo symmetry (both 0 when not computed)."""
+    scan-to-model fit turned the ICP's pose, or the refit on the support turned the pose
+    set flat, whichever is more, modulo symmetry (both 0 when not computed)."""
 
     env_from_object: Mat4
     score: float
@@ -171,7 +172,7 @@ class Refiner:
             top,
         )
 
-    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> Mat4:
+    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> tuple[Mat4, float]:
         """``pose`` set flat on its support when it nearly rests there: its lowest point
         within ``max_sink_m`` of the plane (which reaches beyond it) and its base (−up of
         the model: the library gives models resting on it), else its hull face nearest the
@@ -180,30 +181,33 @@ class Refiner:
         it refitted by the scan-to-model fit on the (M, 3) ``scene`` points, and the lowest
         point set on the plane. Objects stand on their supports: the plane, fitted on
         thousands of floor points, holds the tilt and height better than the object's own
-        few hundred. Otherwise ``pose`` unchanged."""
+        few hundred. Otherwise ``pose`` unchanged. Also returns how far the refit turned
+        it, degrees: beyond ``max_final_turn_deg`` the scan does not hold that turn (the
+        caller counts it against verification)."""
         m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
         if support is None or o.rest_max_tilt_deg <= 0:
-            return pose
+            return pose, 0.0
         posed = transform_points(pose, m.points)
         on_support = self.ctx.region.on_support
         if abs(lowest_height(posed, support)) > o.max_sink_m or not plane_beyond(
             posed, on_support, 2 * m.voxel_m
         ):
-            return pose
+            return pose, 0.0
         turn = resting_turn(
             pose[:3, :3], self.rest_bases, self.hull_faces, support[:3], o.rest_max_tilt_deg
         )
         if turn is None:
-            return pose
+            return pose, 0.0
         centre = pose[:3, :3] @ m.centre_object + pose[:3, 3]
-        rested = np.eye(4)
-        rested[:3, :3] = turn @ pose[:3, :3]
-        rested[:3, 3] = turn @ (pose[:3, 3] - centre) + centre
+        flat = np.eye(4)
+        flat[:3, :3] = turn @ pose[:3, :3]
+        flat[:3, 3] = turn @ (pose[:3, 3] - centre) + centre
         rested, _ = fit_scene_to_model(
-            self.surface, scene, rested, reach_m, o.final_max_iterations, plane_normal=support[:3]
+            self.surface, scene, flat, reach_m, o.final_max_iterations, plane_normal=support[:3]
         )
+        refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
         rested[:3, 3] -= lowest_height(transform_points(rested, m.points), support) * support[:3]
-        return rested
+        return rested, refit_turn
 
     def _picks(self, distinct: list[Trial]) -> list[Trial]:
         """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best
@@ -263,7 +267,8 @@ class Refiner:
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
-        env_from_object = self._at_rest(env_from_object, scene, reach)
+        env_from_object, rest_turn = self._at_rest(env_from_object, scene, reach)
+        turn = max(turn, rest_turn)
         runner_up = next(
             (
                 r.score

@@ -182,6 +182,49 @@ def parts_of_standing_objects(
     return out
 
 
+def join_split_objects(
+    clusters: Sequence[ClusterResult],
+    class_diameters_m: Mapping[str, float],
+    options: CompareOptions,
+    skip: Collection[int] = (),
+) -> tuple[list[ClusterResult], set[int]]:
+    """Identified clusters of one class on one side that together fit within one object
+    (their points' extent at most ``merge_size_margin`` × its diameter) are one object
+    split in parts: the best identified one takes the others' points, and their ids are
+    returned as parts (no change of their own). Clusters whose ids are in ``skip`` (parts
+    of standing objects) take no part. Two objects of one class touching are joined too
+    (their extent fits one only when they are small against it)."""
+    out = list(clusters)
+    parts: set[int] = set()
+    order = sorted(
+        (i for i, c in enumerate(out) if c.object_name in class_diameters_m and c.id not in skip),
+        key=lambda i: -out[i].metrics.get(str(out[i].object_name), 0.0),
+    )
+    for i in order:
+        if out[i].id in parts:
+            continue
+        head = out[i]
+        limit = options.merge_size_margin * class_diameters_m[str(head.object_name)]
+        for j in order:
+            other = out[j]
+            if j == i or other.id in parts or other.side != head.side:
+                continue
+            if other.object_name != head.object_name:
+                continue
+            joined = np.vstack([head.points_env, other.points_env])
+            if float(np.max(np.ptp(joined, axis=0))) > limit:
+                continue
+            head = dataclasses.replace(
+                head,
+                indices=np.concatenate([head.indices, other.indices]),
+                points_env=joined,
+                merged_from=head.merged_from + other.merged_from,
+            )
+            parts.add(other.id)
+        out[i] = head
+    return out, parts
+
+
 def _instance_at(
     cluster: ClusterResult,
     twin: Sequence[TwinInstance],

@@ -37,6 +37,7 @@ from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.evidence import (
     Captures,
+    join_split_objects,
     name_at_removals,
     name_by_twin,
     name_move_ends,
@@ -249,6 +250,8 @@ def compare_snapshots(
     clusters = name_by_twin(clusters, twin, class_diameters_m, options)
     clusters = name_move_ends(clusters, class_diameters_m, both, options, pieces)
     clusters = name_at_removals(clusters, class_diameters_m, options)
+    clusters, parts = join_split_objects(clusters, class_diameters_m, options, skip=pieces)
+    pieces |= parts
     watch.lap("clusters_identify")
 
     report("compare.changes", 0.9)

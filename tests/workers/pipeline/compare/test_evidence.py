@@ -31,6 +31,7 @@ from workers.pipeline.compare.changes import classify_changes
 from workers.pipeline.compare.evidence import (
     Captures,
     _other_capture_metric,
+    join_split_objects,
     name_at_removals,
     name_by_twin,
     name_move_ends,
@@ -341,3 +342,40 @@ def test_a_piece_takes_part_in_no_change() -> None:
     assert types(set()) == [("moved", "crate")]
     assert types({7}) == [("added", "crate")]
     assert types({7, 8}) == []
+
+
+def test_parts_of_one_object_split_in_two_clusters_are_one_change() -> None:
+    """A bin (0.25 × 0.25 × 0.5 m) added, its body and top found as two clusters both named
+    bin: the better named takes the top's points and the top is a part, no change of its
+    own; a second bin 1 m away, a crate's cluster and a part of a standing object stay."""
+    options = PRESETS["default"]
+    body = dataclasses.replace(
+        _cluster("added", (0.0, 0.0, 0.15), {"bin": 0.7}), id=1, object_name="bin"
+    )
+    body = dataclasses.replace(
+        body, points_env=body.points_env + [[0, 0, -0.1]] + np.eye(3)[[0, 1, 2, 0, 1]] * 0.1
+    )
+    top = dataclasses.replace(
+        _cluster("added", (0.05, 0.0, 0.4), {"bin": 0.55}), id=2, object_name="bin"
+    )
+    far = dataclasses.replace(
+        _cluster("added", (1.0, 0.0, 0.2), {"bin": 0.6}), id=3, object_name="bin"
+    )
+    crate = dataclasses.replace(
+        _cluster("added", (0.0, 0.1, 0.15), {"crate": 0.8}), id=4, object_name="crate"
+    )
+    removed = dataclasses.replace(
+        _cluster("removed", (0.0, 0.0, 0.3), {"bin": 0.9}), id=5, object_name="bin"
+    )
+    standing = dataclasses.replace(
+        _cluster("added", (0.0, 0.0, 0.3), {"bin": 0.65}), id=6, object_name="bin"
+    )
+    clusters = [body, top, far, crate, removed, standing]
+    joined, parts = join_split_objects(clusters, DIAMETERS, options, skip={6})
+    assert parts == {2}
+    assert joined[0].n_points == body.n_points + top.n_points
+    assert joined[0].merged_from == body.merged_from + top.merged_from
+    assert [c.n_points for c in joined[2:]] == [c.n_points for c in clusters[2:]]
+    # the better named one takes the other whatever the order
+    joined, parts = join_split_objects([top, body], DIAMETERS, options)
+    assert parts == {2} and joined[0] is top and joined[1].n_points == 10

@@ -678,10 +678,10 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002)
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     refiner = Refiner(ctx, None, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
-    seen = refiner._in_view(np.eye(4))
+    seen = refiner._in_view(points, np.eye(3))
     assert len(seen) == 100 and seen[:, 2].min() >= 0.02
     region.support = None
-    assert len(refiner._in_view(np.eye(4))) == 150
+    assert len(refiner._in_view(points, np.eye(3))) == 150
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])

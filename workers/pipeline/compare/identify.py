@@ -111,6 +111,8 @@ def identify(
     occ = np.zeros(n_c, dtype=np.int64)
     ovl = np.zeros((n_c, n_k), dtype=np.int64)
     iou_sum = np.zeros((n_c, n_k))
+    pads = np.zeros(len(detection_boxes)) if margins is None else margins
+    padded = [_padded(det, float(pad)) for (det, _), pad in zip(detection_boxes, pads, strict=True)]
     for ci, boxes in enumerate(cluster_boxes):
         for img, box in boxes.items():
             occ[ci] += 1
@@ -121,8 +123,7 @@ def identify(
                 raise ComparisonError(
                     f"detection class id out of range 0..{n_k - 1} in image {img}"
                 )
-            pad = 0.0 if margins is None else float(margins[img])
-            ious = iou_matrix(_padded(box[None, :], pad), _padded(det, pad))[0]
+            ious = iou_matrix(_padded(box[None, :], float(pads[img])), padded[img])[0]
             best = np.zeros(n_k)
             np.maximum.at(best, cls, ious)
             hit = best > 0

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
+from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from workers.pipeline.geometry import Mat4, Points, transform_points
@@ -105,9 +106,9 @@ class Refiner:
             np.asarray(model_mid.points),
             normalised(np.asarray(model_mid.normals)),
             ModelSurface(m.points, m.normals),
-            # the base the library gives the model resting on, and its symmetric
-            # equivalents (a can stands on either end)
-            np.vstack([-m.up_object, *(-r[:3, :3] @ m.up_object for r in m.symmetry.rotations)]),
+            # the base the library gives the model resting on under each symmetry element
+            # (identity first; a can stands on either end)
+            np.stack([-r[:3, :3] @ m.up_object for r in m.symmetry.rotations]),
             hull_normals(m.points),
         )
 
@@ -122,22 +123,21 @@ class Refiner:
             )
         posed_mid = transform_points(pose, self.mid_points)
         score = truncated_score(
-            target.tree, self._in_view(pose), o.fine_score_voxels * v
+            target.tree, self._in_view(posed_mid, pose[:3, :3]), o.fine_score_voxels * v
         ) * self.ctx.exclusion(posed_mid)
         return Refined(score, pose, trial)
 
-    def _in_view(self, pose: Mat4) -> Points:
-        """The (N, 3) posed mid-sample model points a camera could see: not on the support
-        (within its band: the scene has no point there) nor facing down at it within two
-        voxels (under an object resting there no camera looks: a mug upright hides its
-        base, upside down only its rim)."""
-        posed = transform_points(pose, self.mid_points)
+    def _in_view(self, posed: Points, rotation: NDArray[np.float64]) -> Points:
+        """Of the (N, 3) mid-sample model points posed with (3, 3) ``rotation``, those a
+        camera could see: not on the support (within its band: the scene has no point
+        there) nor facing down at it within two voxels (under an object resting there no
+        camera looks: a mug upright hides its base, upside down only its rim)."""
         region = self.ctx.region
         if region.support is None:
             return posed
         n = region.support[:3]
         height = posed @ n + region.support[3]
-        facing = self.mid_normals @ pose[:3, :3].T @ n
+        facing = self.mid_normals @ rotation.T @ n
         hidden = (height <= region.band_m) | (
             (facing < -0.7) & (height < 2 * self.ctx.model.voxel_m)
         )

@@ -713,3 +713,39 @@ def test_colour_reads_the_texture_through_the_shading(
     ]
     assert np.isclose(model.symmetry.rotations[0], np.eye(4)).all()
     assert agreements[0] >= max(agreements[1:]) + 0.05
+
+
+def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
+    shared_data: Path, ycb_models: dict[str, PreparedModel], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The drill standing on a table, verified; when the refit on the support (the fit
+    restricted to the plane) turns the pose by 4° (the scan does not hold that turn), the
+    pose is that refit's, and unverified, naming the turn."""
+    from workers.pipeline.pose import refine
+
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    true = upright(35.0, (0.2, -0.1, 0.0))
+    dirs = [np.array([1.0, 0.2, 0.8]), np.array([-0.6, 0.9, 0.7]), np.array([-0.3, -1.0, 0.6])]
+    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs)
+    model = ycb_models["power_drill"]
+    held = estimate_pose(model, scene, cluster_points_env=obj)
+    assert held.verified, held.rejections
+    assert pose_error(held.env_from_object, true)[1] < 2.0
+
+    real_fit = refine.fit_scene_to_model
+
+    def turning_fit(*args: object, **kwargs: object) -> tuple[np.ndarray, np.ndarray]:
+        pose, weights = real_fit(*args, **kwargs)  # type: ignore[arg-type]
+        if kwargs.get("plane_normal") is None:
+            return pose, weights
+        centre = pose[:3, :3] @ model.centre_object + pose[:3, 3]
+        turn = axis_angle_matrix(UP, np.radians(4.0))
+        turned = np.eye(4)
+        turned[:3, :3] = turn @ pose[:3, :3]
+        turned[:3, 3] = turn @ (pose[:3, 3] - centre) + centre
+        return turned, weights
+
+    monkeypatch.setattr(refine, "fit_scene_to_model", turning_fit)
+    turned = estimate_pose(model, scene, cluster_points_env=obj)
+    assert not turned.verified
+    assert any(r.startswith("the last fit turned the ICP pose by 4.") for r in turned.rejections)

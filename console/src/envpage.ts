@@ -64,6 +64,8 @@ export class EnvironmentPage {
   private disposed = false;
   private selectedKey: string | null = null;
   private loadToken = 0;
+  /** What the timeline last rendered, jobs' progress aside (see showJobs). */
+  private timelineShown = "";
 
   private readonly titleEl = h("div", { class: "env-title" });
   private readonly bannerEl = h("div", { class: "banners" });
@@ -233,11 +235,28 @@ export class EnvironmentPage {
     );
     if (this.disposed) return;
     if (finished) await this.refresh().catch(() => undefined);
-    else this.renderTimeline();
+    else this.showJobs();
     if (this.pollTimer !== null) clearTimeout(this.pollTimer);
     // jobs running: poll them; otherwise look for snapshots uploaded elsewhere now and then
     if (this.activeJobIds().length > 0) this.pollTimer = window.setTimeout(() => void this.pollJobs(), 1500);
     else this.pollTimer = window.setTimeout(() => void this.idleRefresh(), IDLE_REFRESH_MS);
+  }
+
+  /** The timeline's content apart from running jobs' progress and stage. */
+  private timelineState(): string {
+    const jobs = [...this.jobs.values()].map((j) => [j.id, j.state, j.cancel_requested, j.error?.code ?? null]);
+    return JSON.stringify([this.snapshots, this.comparisons, jobs]);
+  }
+
+  /** After a poll: re-render the timeline only when more than a job's progress changed;
+   * otherwise update the progress bars in place, so a button is never replaced under the
+   * pointer (a click whose press and release land on two renders is lost). */
+  private showJobs(): void {
+    if (this.timelineState() !== this.timelineShown) return this.renderTimeline();
+    for (const bar of this.timelineEl.querySelectorAll<HTMLElement>("[data-job]")) {
+      const job = this.jobs.get(bar.dataset.job ?? "");
+      if (job) bar.replaceWith(this.progress(job));
+    }
   }
 
   private async idleRefresh(): Promise<void> {
@@ -610,6 +629,7 @@ export class EnvironmentPage {
 
   private renderTimeline(): void {
     const el = this.timelineEl;
+    this.timelineShown = this.timelineState();
     el.replaceChildren(h("h2", {}, "Timeline"));
     if (this.snapshots.length === 0) return void el.append(empty("No snapshots yet."));
     const list = h("ol", { class: "snapshots" });
@@ -702,7 +722,7 @@ export class EnvironmentPage {
     const pct = Math.round(job.progress * 100);
     return h(
       "div",
-      { class: "progress", testid: "job-progress" },
+      { class: "progress", testid: "job-progress", "data-job": job.id },
       h("div", { class: "bar" }, h("div", { class: "fill", style: `width:${pct}%` })),
       h("span", { class: "muted" }, `${job.state}${job.stage ? ` · ${job.stage}` : ""} · ${pct}%${job.cancel_requested ? " · cancelling" : ""}`),
     );

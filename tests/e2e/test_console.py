@@ -202,6 +202,21 @@ def test_upload_then_cancel_from_the_console(
     page.get_by_text("uploaded: snapshot #3").wait_for(timeout=60_000)
     item = page.get_by_test_id("snapshot-item").filter(has=page.get_by_text("#3", exact=True))
     item.get_by_test_id("job-progress").wait_for(timeout=30_000)
+    bar = f"li[data-id='{item.get_attribute('data-id')}'] [data-job]"
+    page.wait_for_function(
+        "bar => document.querySelector(bar)?.textContent.startsWith('running')",
+        arg=bar,
+        timeout=60_000,
+    )
+    # a poll that only moves the progress updates the bar in place: the cancel button is
+    # the same node (a click pressed on one render and released on the next is lost)
+    button = item.get_by_test_id("cancel-job").element_handle()
+    page.wait_for_function(
+        "([bar, shown]) => document.querySelector(bar)?.textContent !== shown",
+        arg=[bar, page.locator(bar).inner_text()],
+        timeout=60_000,
+    )
+    assert button.evaluate("el => el.isConnected")
     shots.take(page, "07-upload-progress")
     item.get_by_test_id("cancel-job").click()
     item.locator(".badge.cancelled").wait_for(timeout=60_000)

@@ -556,14 +556,21 @@ def _sgbm_disparity(
         speckleRange=2,
         mode=_SGBM_MODES[options.sgbm_mode],
     )
+    # SGBM leaves the left image's first minDisparity + numDisparities columns unmatched
+    # (their whole search range would start left of the right image): pad both on the left
+    # by as much, so every left pixel whose match lies in the right image is searched
+    pad = max(min_disp, 0) + num
     disp = np.full(left.gray.shape, -1.0, np.float32)
     disp[rows_used] = sgbm.compute(
-        np.ascontiguousarray(left.gray[rows_used]), np.ascontiguousarray(right.gray[rows_used])
-    ).astype(np.float32)
+        cv2.copyMakeBorder(left.gray[rows_used], 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0),
+        cv2.copyMakeBorder(right.gray[rows_used], 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0),
+    )[:, pad:].astype(np.float32)
     disp /= 16.0
-    # matches at either end of the window are surfaces outside it
+    # matches at either end of the window are surfaces outside it; a match left of the
+    # right image's first block is one into the padding
     at_ends = (disp <= max(min_disp, 0) + 0.5) | (far_range & (disp >= min_disp + num - 1.5))
-    disp[at_ends | ~left.valid | _textureless(left.gray, bs)] = np.nan
+    outside = np.arange(left.gray.shape[1], dtype=np.float32)[None, :] - disp < bs
+    disp[at_ends | outside | ~left.valid | _textureless(left.gray, bs)] = np.nan
     disp_src = _right_disparity(disp)
     disp_src[~right.valid | _textureless(right.gray, bs)] = np.nan
     return disp, disp_src

@@ -75,6 +75,13 @@ BEFORE = (
             "64cb6a8404ec9a35cf0ca2d2d0fb7791e1ab5c1841aa4bfdf74245cc49c08c91"
         ),
     },
+    {  # Intel Xeon (e7676c5 run there in a worktree, 2026-11-25)
+        "tiny_moved_3": "97050eff3494d2a652de3929bff8085cab5220a878550c216f88d076960cd6f5",
+        "tiny_table_swapped_2": "4fb6009b3f54690a9c3e06e4caa2b8bf1cc55bbef2d447c4b5d66d7c805893c9",
+        "bench_small_multiple_1": (
+            "bcf41ab7661f5c9abb6bd16b6c683d555ff7a5219ac9e5512b3201c20d45eea5"
+        ),
+    },
 )
 
 

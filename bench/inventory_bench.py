@@ -42,6 +42,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.inventory import match_reach_m, moved_beyond_noise
 from bench.scenarios_bench import (
+    QUALITY_FIGURES,
     ROOT,
     TMP,
     _hash_inputs,
@@ -181,8 +182,10 @@ def score_capture(
         if i in pairs:
             f = found[pairs[i]]
             row["metric"] = f["identification"].get("metric")
-            row["verified"] = bool((f.get("pose_quality") or {}).get("verified"))
-            row["reasons"] = (f.get("pose_quality") or {}).get("reasons")
+            quality = f.get("pose_quality") or {}
+            row["verified"] = bool(quality.get("verified"))
+            row["reasons"] = quality.get("reasons")
+            row["figures"] = {k: v for k, v in quality.items() if k in QUALITY_FIGURES}
             if f.get("pose") is not None:
                 e = errors(f["pose"], p["env_from_object"], _symmetry(truth, p["object"]))
                 row["translation_error_m"] = e.translation_m

@@ -139,6 +139,16 @@ def scene(work: Path, scenario: str, seed: int, synth: Any, tag: str, models: An
 #: SfM threads of every bench reconstruction: with one, a fresh reconstruction repeats
 #: bit for bit (multithreaded matching and mapping do not); the service keeps all cores
 BENCH_SFM_THREADS = 1
+#: the pose step's figures behind ``verified`` kept per pose, to study the checks
+QUALITY_FIGURES = (
+    "fitness",
+    "inlier_rmse",
+    "cluster_coverage",
+    "runner_up_ratio",
+    "rotation_slack_deg",
+    "final_turn_deg",
+    "reprojection",
+)
 
 
 def reconstruct_capture(
@@ -293,14 +303,16 @@ def score(
             row["cluster"] = m.found["cluster"]["id"]
             metrics = metrics_by_cluster.get(m.found["cluster"]["id"], {})
             symmetric = m.rpy_error_deg is not None and any(map(math.isnan, m.rpy_error_deg))
+            quality = m.found.get("pose_quality") or {}
             row.update(
                 found=True,
                 true_class_metric=metrics.get(m.truth["object"], 0.0),
                 other_class_metric_max=max(
                     (v for k, v in metrics.items() if k != m.truth["object"]), default=0.0
                 ),
-                verified=(m.found.get("pose_quality") or {}).get("verified"),
-                pose_reasons=(m.found.get("pose_quality") or {}).get("reasons"),
+                verified=quality.get("verified"),
+                pose_reasons=quality.get("reasons"),
+                pose_figures={k: v for k, v in quality.items() if k in QUALITY_FIGURES},
                 translation_error_m=m.translation_error_m,
                 rotation_error_deg=m.rotation_error_deg,
                 # per-axis errors of the model origin mean nothing for a symmetric object

@@ -23,7 +23,8 @@ class SnapshotObjectRead(BaseModel):
         description="the pose passed the pose stage's checks (fit, coverage, re-projection)"
     )
     pose_quality: dict[str, Any] | None = Field(
-        description="the pose stage's figures: fitness, inlier_rmse (m), verified, reasons, "
+        description="the pose stage's figures: fitness, inlier_rmse (m), cluster_coverage, "
+        "runner_up_ratio, rotation_slack_deg, final_turn_deg, verified, reasons, "
         "reprojection {mean_iou, views, passed}"
     )
     identification: dict[str, Any] = Field(

@@ -755,3 +755,9 @@ def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
     turned = estimate_pose(model, scene, cluster_points_env=obj)
     assert not turned.verified
     assert any(r.startswith("the last fit turned the ICP pose by 4.") for r in turned.rejections)
+    # pose_quality carries the figures behind the verdict
+    figures = turned.quality_json()
+    assert figures["verified"] is False and 3.9 < figures["final_turn_deg"] < 4.1
+    held_figures = held.quality_json()
+    assert held_figures["cluster_coverage"] == held.cluster_coverage >= 0.85
+    assert held_figures["runner_up_ratio"] <= 0.85 and held_figures["final_turn_deg"] <= 3.0

@@ -33,6 +33,8 @@ POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
 #: any distinct near-tie before the tie counts as settled
 RIVAL_IOU_MARGIN = 0.1
+#: pose_quality figures the pose step measures of its chosen pose only
+_CHOICE_FIGURES = ("cluster_coverage", "runner_up_ratio", "rotation_slack_deg", "final_turn_deg")
 #: the environment's up: z (the markers' floor normal); the pose step and the box
 #: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
@@ -127,6 +129,8 @@ def pose_change(
         second_iou = max((c.mean_iou for c, p in checked if p is not best_pose), default=0.0)
         if best_pose is not chosen and not model.symmetry.is_symmetric:
             quality.update(_fit_figures(model, scene, best_pose, pose.inlier_distance_m))
+            # the pose step measured these of its own choice only
+            quality.update(dict.fromkeys(_CHOICE_FIGURES))
             quality["chosen_by"] = "reprojection"
             quality["switched_from_iou"] = round(check.mean_iou, 4)
             chosen, check = best_pose, best_check

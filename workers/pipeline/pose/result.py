@@ -67,10 +67,15 @@ class PoseResult:
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:
-        """The ``pose_quality`` object of the comparison contract."""
+        """The ``pose_quality`` object of the comparison contract: the verification's figures
+        (``runner_up_ratio``: the best distinct pose's score over this one's) with the verdict."""
         return {
             "fitness": self.fitness,
             "inlier_rmse": self.inlier_rmse_m,
+            "cluster_coverage": self.cluster_coverage,
+            "runner_up_ratio": self.runner_up_score / self.score if self.score > 0 else 0.0,
+            "rotation_slack_deg": self.rotation_slack_deg,
+            "final_turn_deg": self.final_turn_deg,
             "verified": self.verified,
             "ambiguous": self.ambiguous,
             "equivalent_poses": [p.tolist() for p in self.equivalent_poses],

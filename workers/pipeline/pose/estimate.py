@@ -11,7 +11,7 @@ module each:
    and scored;
 3. :mod:`~workers.pipeline.pose.refine`: the best distinct candidates refined by
    multi-scale point-to-plane ICP and re-scored at a fine scale;
-4. :mod:`~workers.pipeline.pose.verify`: fitness, inlier RMSE, cluster coverage and the
+4. :mod:`~workers.pipeline.pose.verify`: fitness, cluster coverage and the
    best distinct alternative decide ``verified``; while not verified, steps 2-4 run again
    with new seeds, up to ``max_rounds`` rounds;
 5. :mod:`~workers.pipeline.pose.canonical`: one canonical pose among a symmetric object's

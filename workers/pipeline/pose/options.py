@@ -63,8 +63,6 @@ class PoseOptions:
     max_inlier_distance_m: float = 0.01
     # least share of model points near the scene for ``verified``; one view sees 30-60 %
     min_fitness: float = 0.25
-    # largest inlier RMSE for ``verified``, voxels (and at most 0.6 × max_inlier_distance_m)
-    max_rmse_voxels: float = 0.3
     # least tolerance of cluster coverage, voxels (3σ of the cluster's scatter, clipped)
     coverage_voxels: float = 0.5
     # largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)

@@ -1,9 +1,11 @@
 """Step 4 of pose estimation: verification of a pose, in 3D and against the detector's boxes.
 
 In 3D (:func:`verify_fit`): ``fitness`` (share of model points with a scene point within the
-inlier distance), inlier RMSE, the share of cluster points explained by the posed model, and
-the score of the best *distinct* alternative; ``verified`` needs all of them within the
-:class:`~workers.pipeline.pose.options.PoseOptions` thresholds.
+inlier distance), the share of cluster points explained by the posed model, the score of the
+best *distinct* alternative and how well the scan holds the rotation; ``verified`` needs all
+of them within the :class:`~workers.pipeline.pose.options.PoseOptions` thresholds. The inlier
+RMSE is reported, not judged: bounded by the inlier distance, it measures the cloud's noise
+against the object's voxel, not the pose.
 
 By re-projection (:func:`reprojection_check`): the posed model is projected into every image of
 the capture that saw it, keeping the model points the capture's own depth says are visible,
@@ -61,9 +63,9 @@ def cluster_coverage(cluster: Points, posed_model: Points, v: float, o: PoseOpti
 def verify_fit(
     fit: Refinement, model_points: Points, cluster: Points | None, v: float, o: PoseOptions
 ) -> FitVerification:
-    """Step 4: reject the refined pose when ``fitness < min_fitness``, the inlier RMSE exceeds
-    ``max_rmse_voxels·v`` (at most 0.6 × ``max_inlier_distance_m``), a distinct pose scores
-    above ``max_runner_up_ratio`` × the best (two poses that explain the data about equally
+    """Step 4: reject the refined pose when ``fitness < min_fitness`` (or no model point has
+    a scan point within the inlier distance), a distinct pose scores above
+    ``max_runner_up_ratio`` × the best (two poses that explain the data about equally
     well are not a verified pose), or the cluster coverage is below
     ``min_cluster_coverage``, or the scan's residual level hides a turn of more than
     ``max_rotation_slack_deg`` or the last fit turned the refinement's ICP pose by more than
@@ -73,13 +75,10 @@ def verify_fit(
     if cluster is not None:
         posed = transform_points(fit.env_from_object, model_points)
         coverage = cluster_coverage(cluster, posed, v, o)
-    fitness, rmse = fit.fitness, fit.inlier_rmse_m
+    fitness = fit.fitness
     rejections: list[str] = []
-    if fitness < o.min_fitness:
+    if fitness < o.min_fitness or fitness == 0.0:
         rejections.append(f"fitness {fitness:.2f} < {o.min_fitness:.2f}")
-    max_rmse = min(o.max_rmse_voxels * v, 0.6 * o.max_inlier_distance_m)
-    if rmse > max_rmse or fitness == 0.0:
-        rejections.append(f"inlier RMSE {rmse * 1000:.1f} mm > {max_rmse * 1000:.1f} mm")
     if fit.runner_up > o.max_runner_up_ratio * fit.score:
         ratio = fit.runner_up / fit.score
         rejections.append(f"{RUNNER_UP_REASON} {ratio:.2f} of the best (> {o.max_runner_up_ratio})")

@@ -42,11 +42,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from app.core.inventory import match_reach_m, moved_beyond_noise
 from bench.scenarios_bench import (
-    QUALITY_FIGURES,
     ROOT,
     TMP,
     _hash_inputs,
     capture_data,
+    pose_figures,
     prepared_models,
     reconstruct_capture,
     scene,
@@ -185,7 +185,7 @@ def score_capture(
             quality = f.get("pose_quality") or {}
             row["verified"] = bool(quality.get("verified"))
             row["reasons"] = quality.get("reasons")
-            row["figures"] = {k: v for k, v in quality.items() if k in QUALITY_FIGURES}
+            row["figures"] = pose_figures(quality)
             if f.get("pose") is not None:
                 e = errors(f["pose"], p["env_from_object"], _symmetry(truth, p["object"]))
                 row["translation_error_m"] = e.translation_m

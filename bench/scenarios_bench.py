@@ -151,6 +151,11 @@ QUALITY_FIGURES = (
 )
 
 
+def pose_figures(quality: dict[str, Any]) -> dict[str, Any]:
+    """The :data:`QUALITY_FIGURES` of a ``pose_quality`` object (those it has)."""
+    return {k: v for k, v in quality.items() if k in QUALITY_FIGURES}
+
+
 def reconstruct_capture(
     work: Path, scene_dir: Path, capture: str, preset: str, reference_cloud: Path | None
 ) -> tuple[Path, dict[str, Any], bool]:
@@ -312,7 +317,7 @@ def score(
                 ),
                 verified=quality.get("verified"),
                 pose_reasons=quality.get("reasons"),
-                pose_figures={k: v for k, v in quality.items() if k in QUALITY_FIGURES},
+                pose_figures=pose_figures(quality),
                 translation_error_m=m.translation_error_m,
                 rotation_error_deg=m.rotation_error_deg,
                 # per-axis errors of the model origin mean nothing for a symmetric object

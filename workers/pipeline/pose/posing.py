@@ -26,15 +26,13 @@ from workers.pipeline.pose.candidates import distinct_pose, upright
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
-from workers.pipeline.pose.result import PoseResult
+from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
 from workers.pipeline.pose.verify import RUNNER_UP_REASON, ReprojectionCheck, reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
 #: any distinct near-tie before the tie counts as settled
 RIVAL_IOU_MARGIN = 0.1
-#: pose_quality figures the pose step measures of its chosen pose only
-_CHOICE_FIGURES = ("cluster_coverage", "runner_up_ratio", "rotation_slack_deg", "final_turn_deg")
 #: the environment's up: z (the markers' floor normal); the pose step and the box
 #: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
@@ -130,7 +128,7 @@ def pose_change(
         if best_pose is not chosen and not model.symmetry.is_symmetric:
             quality.update(_fit_figures(model, scene, best_pose, pose.inlier_distance_m))
             # the pose step measured these of its own choice only
-            quality.update(dict.fromkeys(_CHOICE_FIGURES))
+            quality.update(dict.fromkeys(CHOICE_FIGURES))
             quality["chosen_by"] = "reprojection"
             quality["switched_from_iou"] = round(check.mean_iou, 4)
             chosen, check = best_pose, best_check

@@ -31,6 +31,10 @@ class Alternative:
     env_from_object: Mat4
 
 
+#: the ``pose_quality`` figures the pose step measures of its own chosen pose only
+CHOICE_FIGURES = ("cluster_coverage", "runner_up_ratio", "rotation_slack_deg", "final_turn_deg")
+
+
 @dataclass(frozen=True, eq=False)
 class PoseResult:
     """Pose of one object. ``env_from_object``: 4×4 float64 mapping object-model points

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
+from scipy.spatial import ConvexHull
 
 from tests.workers.pipeline.compare_scene import look_at
 from workers.pipeline.__main__ import main as pipeline_main
@@ -595,7 +596,8 @@ def test_a_nearly_resting_object_is_turned_flat_onto_its_nearest_hull_face() -> 
     box = rng.uniform([-0.1, -0.04, 0.0], [0.1, 0.04, 0.02], (2000, 3))  # a flat bar
     corners = np.array([[x, y, z] for x in (-0.1, 0.1) for y in (-0.04, 0.04) for z in (0, 0.02)])
     box = np.vstack([box, corners])
-    faces = hull_normals(box)
+    faces = hull_normals(box, box.mean(axis=0))
+    assert len(faces) == 6  # a box rests on any of its six faces
     lean = axis_angle_matrix(np.array([1.0, 0.3, 0.0]), np.radians(3.0))
     yaw = axis_angle_matrix(UP, np.radians(40.0))
     turn = resting_turn(lean @ yaw, faces[:0], faces, UP, 5.0)
@@ -617,6 +619,30 @@ def test_a_nearly_resting_object_is_turned_flat_onto_its_nearest_hull_face() -> 
     turned = resting_turn(over, faces[:0], faces, UP, 5.0)
     assert turned is not None
     assert (turned @ over @ np.array([0, 0, 1.0]))[2] == pytest.approx(-1.0)
+
+
+def test_a_rounded_object_rests_only_on_faces_that_hold_its_centre_above_them() -> None:
+    """A dome (half a sphere on its flat base): its curved flank's hull slivers would tip it
+    over, so turned 12° it goes back onto its base, not onto the sliver beneath it."""
+    rng = np.random.default_rng(2)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 2] = np.abs(d[:, 2])
+    disc = rng.uniform(-1, 1, (3000, 2))
+    disc = disc[np.linalg.norm(disc, axis=1) <= 1]
+    dome = 0.08 * np.vstack([d, np.column_stack([disc, np.zeros(len(disc))])])
+    centre = np.array([0.0, 0.0, 3 / 8 * 0.08])  # a solid half ball's centre of mass
+    faces = hull_normals(dome, centre)
+    # its base, and slivers within a few degrees of its crown (it rocks there, upside down)
+    assert faces[:, 2].min() == pytest.approx(-1.0, abs=1e-6)
+    assert np.all((faces[:, 2] < -0.9999) | (faces[:, 2] > np.cos(np.radians(10.0))))
+    tilt = axis_angle_matrix(np.array([0.6, 0.8, 0.0]), np.radians(12.0))
+    every = ConvexHull(dome).equations[:, :3]
+    # a sliver of the hull lies nearer flat than the base
+    assert np.max(every @ tilt.T @ -UP) > np.cos(np.radians(10.0))
+    turn = resting_turn(tilt, faces[:0], faces, UP, 15.0)
+    assert turn is not None
+    np.testing.assert_allclose(turn @ tilt, np.eye(3), atol=1e-6)
 
 
 def test_the_fit_on_a_plane_turns_about_its_normal_and_shifts_across_it_only() -> None:

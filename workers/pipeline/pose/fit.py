@@ -11,7 +11,7 @@ from collections.abc import Sequence
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from scipy.spatial import ConvexHull, cKDTree
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from workers.pipeline.compare.visibility import DepthMap, depth_votes
 from workers.pipeline.geometry import (
@@ -287,10 +287,41 @@ def plane_beyond(posed: Points, on_support: Points, clearance_m: float) -> bool:
     return int(np.count_nonzero(~np.isfinite(d))) >= 30
 
 
-def hull_normals(points_object: Points) -> NDArray[np.float64]:
-    """(F, 3) unit outward normals of the faces of the convex hull of (N ≥ 4, 3) model
-    points (object frame): the faces an object can rest on."""
-    return np.asarray(ConvexHull(points_object).equations[:, :3], dtype=np.float64)
+def hull_normals(points_object: Points, centre_object: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(F, 3) unit outward normals of the faces an object can rest on: the faces of the
+    convex hull of (N ≥ 4, 3) model points (object frame) that hold ``centre_object`` (3,),
+    its centre of mass, above them. Coplanar hull triangles are one face; a face whose
+    polygon does not contain the centre's foot (a rounded flank's sliver) would tip over."""
+    hull = ConvexHull(points_object)
+    planes = np.round(hull.equations, 6)
+    _, group, counts = np.unique(planes, axis=0, return_inverse=True, return_counts=True)
+    out = []
+    for facets in np.split(np.argsort(group.ravel(), kind="stable"), np.cumsum(counts)[:-1]):
+        normal, offset = hull.equations[facets[0], :3], hull.equations[facets[0], 3]
+        corners = points_object[np.unique(hull.simplices[facets])]
+        foot = centre_object - (normal @ centre_object + offset) * normal
+        if _inside_polygon(corners, foot, normal):
+            out.append(normal)
+    return np.asarray(out, dtype=np.float64).reshape(-1, 3)
+
+
+def _inside_polygon(
+    corners: Points, point: NDArray[np.float64], normal: NDArray[np.float64]
+) -> bool:
+    """Whether ``point`` (3,) lies inside the convex polygon of the (K, 3) coplanar
+    ``corners`` with unit ``normal`` (False for a degenerate polygon)."""
+    if len(corners) < 3:
+        return False
+    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    flat = np.column_stack([corners @ u, corners @ v])
+    try:
+        polygon = ConvexHull(flat)
+    except QhullError:
+        return False
+    q = np.array([point @ u, point @ v])
+    return bool(np.all(polygon.equations[:, :2] @ q + polygon.equations[:, 2] <= 0.0))
 
 
 def resting_turn(

@@ -75,10 +75,10 @@ class PoseOptions:
     support_band_voxels: float = 0.5
     # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
     max_sink_m: float = 0.01
-    # a final pose within max_sink_m of its support whose base (else hull face) nearest the
-    # plane is tilted at most this much, degrees, is set flat on it (turn and shift across
-    # it refitted); 0 disables; lower where objects lean on things
-    rest_max_tilt_deg: float = 5.0
+    # a final pose within max_sink_m of its support whose base (else a hull face it can rest
+    # on) nearest the plane is tilted at most this much, degrees, is set flat on it (turn
+    # and shift across it refitted); 0 disables; lower where objects lean on things
+    rest_max_tilt_deg: float = 10.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
     max_rotation_slack_deg: float = 20.0

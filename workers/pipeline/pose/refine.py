@@ -109,7 +109,7 @@ class Refiner:
             # the base the library gives the model resting on under each symmetry element
             # (identity first; a can stands on either end)
             np.stack([-r[:3, :3] @ m.up_object for r in m.symmetry.rotations]),
-            hull_normals(m.points),
+            hull_normals(m.points, m.centre_object),
         )
 
     def _refine(self, trial: Trial) -> Refined:
@@ -175,8 +175,8 @@ class Refiner:
     def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> tuple[Mat4, float]:
         """``pose`` set flat on its support when it nearly rests there: its lowest point
         within ``max_sink_m`` of the plane (which reaches beyond it) and its base (−up of
-        the model: the library gives models resting on it), else its hull face nearest the
-        plane, within ``rest_max_tilt_deg`` of flat. That face is turned flat
+        the model: the library gives models resting on it), else the hull face nearest the
+        plane that holds its centre above it, within ``rest_max_tilt_deg`` of flat. That face is turned flat
         about the object's centre, the turn about the plane's normal and the shift across
         it refitted by the scan-to-model fit on the (M, 3) ``scene`` points, and the lowest
         point set on the plane. Objects stand on their supports: the plane, fitted on

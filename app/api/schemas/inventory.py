@@ -29,7 +29,10 @@ class SnapshotObjectRead(BaseModel):
     )
     identification: dict[str, Any] = Field(
         description="the compare stage's identification figures of its class: metric "
-        "(mean IoU × overlaps / occurrences), iou, overlaps, occurrences"
+        "(mean IoU × overlaps / occurrences), iou, overlaps, occurrences; model_metric, the "
+        "same metric of the posed model's points, when the segment alone scored under the "
+        "identification threshold (a flat object's segment, loosened by the smear at its "
+        "foot) and the posed model named it"
     )
     centroid_env: list[float] = Field(description="centre of the object, environment frame, m")
     support: str | None = Field(description="the surface it stands on: floor, surface_1, ...")

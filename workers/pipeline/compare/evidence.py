@@ -95,6 +95,23 @@ def occurrence_boxes(
     return out
 
 
+def points_table(
+    point_sets: Sequence[FloatArray],
+    capture: CaptureData,
+    depth_maps: Sequence[DepthMap] | None,
+    classes: Sequence[str],
+    options: CompareOptions,
+) -> IdentificationTable:
+    """The identification table of each (N, 3) point set (environment frame, metres) against
+    ``capture``'s images and detections (visibility against its z-buffers ``depth_maps``)."""
+    dets = [
+        yolo_to_boxes(capture.detections.get(cam.name, np.zeros((0, 6))), cam.width, cam.height)
+        for cam in capture.cameras
+    ]
+    boxes = [occurrence_boxes(p, capture, depth_maps, options) for p in point_sets]
+    return identify(boxes, dets, classes, margins_px(capture.cameras, options.box_margin))
+
+
 def cross_capture_table(
     clusters: Sequence[ClusterResult],
     other: CaptureData,
@@ -104,12 +121,7 @@ def cross_capture_table(
 ) -> IdentificationTable:
     """The identification table of ``clusters``' points against the **other** capture's
     images and detections (visibility against its z-buffers ``other_maps``)."""
-    dets = [
-        yolo_to_boxes(other.detections.get(cam.name, np.zeros((0, 6))), cam.width, cam.height)
-        for cam in other.cameras
-    ]
-    boxes = [occurrence_boxes(c.points_env, other, other_maps, options) for c in clusters]
-    return identify(boxes, dets, classes, margins_px(other.cameras, options.box_margin))
+    return points_table([c.points_env for c in clusters], other, other_maps, classes, options)
 
 
 def still_there(

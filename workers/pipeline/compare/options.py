@@ -200,7 +200,8 @@ class CompareOptions:
     # lies on, an added one standing where an identified object was removed its best
     # other class, and the best cluster elsewhere for the class of an identified cluster
     # with no counterpart (a move's other end) that class, when it scores at least this
-    # metric (None: off)
+    # metric; an inventory segment scoring it is posed as its best class and named when
+    # the posed model scores identify_threshold (None: off)
     twin_identify_threshold: float | None = 0.3
     # an identified cluster left as a plain addition or removal is no change when the
     # other capture's detector names its class at its place with at least this metric

@@ -25,11 +25,14 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.clusters import dbscan, groups_from_labels
 from workers.pipeline.compare.data import CaptureData
+from workers.pipeline.compare.evidence import points_table
+from workers.pipeline.compare.options import CompareOptions
 from workers.pipeline.compare.results import Change, ClusterResult
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
 from workers.pipeline.compare.stage import render_depth_maps
 from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import InputError
+from workers.pipeline.geometry import transform_points
 from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptions
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
 from workers.pipeline.model import PreparedModel
@@ -241,6 +244,35 @@ def _support_of(cluster: ClusterResult, seg: _Segments) -> str | None:
     return seg.supports[int(np.bincount(votes).argmax())].name if len(votes) else None
 
 
+def _weakly_named(
+    segments: Sequence[ClusterResult], diameters: Mapping[str, float], c: CompareOptions
+) -> dict[ClusterResult, str]:
+    """The segments no class names whose best class (one with a model) scores at least
+    ``twin_identify_threshold``, with that class: a flat object's segment carries the smear
+    around its foot, a box looser than the object's own (none when that option is None)."""
+    if c.twin_identify_threshold is None:
+        return {}
+    out: dict[ClusterResult, str] = {}
+    for cluster in segments:
+        scores = {k: v for k, v in cluster.metrics.items() if k in diameters}
+        if cluster.object_name is None and scores:
+            best = max(scores, key=lambda k: scores[k])
+            if scores[best] >= c.twin_identify_threshold:
+                out[cluster] = best
+    return out
+
+
+def _maps(seg: _Segments, c: CompareOptions) -> list[DepthMap] | None:
+    return seg.maps if c.use_visibility else None
+
+
+def _weak_reason(ident: Mapping[str, Any], name: str, c: CompareOptions) -> str:
+    return (
+        f"named by no class: segment {float(ident.get('metric', 0.0)):.2f}, posed {name} "
+        f"{ident['model_metric']:.2f} < {c.identify_threshold}"
+    )
+
+
 def _pose_segments(
     capture: CaptureData,
     classes: Sequence[str],
@@ -252,15 +284,17 @@ def _pose_segments(
 ) -> tuple[list[InventoryObject], list[dict[str, Any]]]:
     """Each identified segment posed as the pose stage poses a change; those whose posed
     model misses the detector's boxes are rejected (``require_reprojection``)."""
-    named = [c for c in seg.segments if c.object_name is not None]
+    compare_options = options.compare_options()
+    weak = _weakly_named(seg.segments, class_diameters_m, compare_options)
+    named = [(c, str(c.object_name)) for c in seg.segments if c.object_name is not None]
+    named += [(c, name) for c, name in weak.items()]
     pose_options = options.pose_options()
     scene = SceneCloud.create(capture.points_env, colors=capture.colors) if named else None
     prepared: dict[str, PreparedModel] = {}
     found: list[InventoryObject] = []
     rejected: list[dict[str, Any]] = []
-    for i, cluster in enumerate(named):
+    for i, (cluster, name) in enumerate(named):
         report("inventory.pose", 0.4 + 0.6 * i / len(named))
-        name = str(cluster.object_name)
         ident = cluster.identification_json(name)
         ident.pop("object", None)
         pose: dict[str, Any] = {}
@@ -274,14 +308,22 @@ def _pose_segments(
             )
         quality = pose.get("pose_quality")
         passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
+        reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]
+        if cluster in weak and pose.get("pose") is not None:
+            posed = transform_points(np.asarray(pose["pose"]), prepared[name].points)
+            table = points_table(
+                [posed], capture, _maps(seg, compare_options), classes, compare_options
+            )
+            ident["model_metric"] = float(table.metric[0, list(classes).index(name)])
+            if ident["model_metric"] < compare_options.identify_threshold:
+                passed, reasons = False, [_weak_reason(ident, name, compare_options)]
         if options.require_reprojection and name in class_diameters_m and not passed:
-            reasons = (quality or {}).get("reasons") or ["no pose"]
             rejected.append(
                 {
                     "object": name,
                     "identification": ident,
                     "cluster": _segment_json(cluster),
-                    "reason": "; ".join(str(r) for r in reasons),
+                    "reason": "; ".join(reasons),
                 }
             )
             continue

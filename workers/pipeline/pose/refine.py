@@ -176,14 +176,14 @@ class Refiner:
         """``pose`` set flat on its support when it nearly rests there: its lowest point
         within ``max_sink_m`` of the plane (which reaches beyond it) and its base (−up of
         the model: the library gives models resting on it), else the hull face nearest the
-        plane that holds its centre above it, within ``rest_max_tilt_deg`` of flat. That face is turned flat
-        about the object's centre, the turn about the plane's normal and the shift across
-        it refitted by the scan-to-model fit on the (M, 3) ``scene`` points, and the lowest
-        point set on the plane. Objects stand on their supports: the plane, fitted on
-        thousands of floor points, holds the tilt and height better than the object's own
-        few hundred. Otherwise ``pose`` unchanged. Also returns how far the refit turned
-        it, degrees: beyond ``max_final_turn_deg`` the scan does not hold that turn (the
-        caller counts it against verification)."""
+        plane that holds its centre above it, within ``rest_max_tilt_deg`` of flat. That
+        face is turned flat about the object's centre, the turn about the plane's normal
+        and the shift across it refitted by the scan-to-model fit on the (M, 3) ``scene``
+        points, and the lowest point set on the plane. Objects stand on their supports:
+        the plane, fitted on thousands of floor points, holds the tilt and height better
+        than the object's own few hundred. Otherwise ``pose`` unchanged. Also returns how
+        far the refit turned it, degrees: beyond ``max_final_turn_deg`` the scan does not
+        hold that turn (the caller counts it against verification)."""
         m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
         if support is None or o.rest_max_tilt_deg <= 0:
             return pose, 0.0

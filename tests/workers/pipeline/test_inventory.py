@@ -220,6 +220,16 @@ def test_a_segment_too_loose_for_its_boxes_is_named_by_its_posed_model(
     assert np.linalg.norm(result.objects[0].centroid_env[:2] - [0.2, -0.3]) < 0.03
     off = InventoryOptions(compare={"twin_identify_threshold": None})
     assert take_inventory(scene, CLASSES, diameters(models), models.__getitem__, off).objects == ()
+    # boxed as a crate instead, the posed 30 cm crate does not fit the flat segment's boxes:
+    # not an object, even where poses that miss the boxes are listed
+    as_crate = {
+        k: np.column_stack([np.zeros(len(v)), v[:, 1:]]) for k, v in scene.detections.items()
+    }
+    crate_scene = CaptureData(scene.points_env, scene.cameras, as_crate, None)
+    loose = InventoryOptions(require_reprojection=False)
+    result = take_inventory(crate_scene, CLASSES, diameters(models), models.__getitem__, loose)
+    assert result.objects == ()
+    assert [r["reason"].split(":")[0] for r in result.rejected] == ["named by no class"]
 
 
 def test_a_class_without_a_prepared_model_is_listed_without_a_pose() -> None:

@@ -267,10 +267,10 @@ def _maps(seg: _Segments, c: CompareOptions) -> list[DepthMap] | None:
 
 
 def _weak_reason(ident: Mapping[str, Any], name: str, c: CompareOptions) -> str:
-    return (
-        f"named by no class: segment {float(ident.get('metric', 0.0)):.2f}, posed {name} "
-        f"{ident['model_metric']:.2f} < {c.identify_threshold}"
-    )
+    posed = ident.get("model_metric")
+    model = f"no pose as {name}" if posed is None else f"posed {name} {posed:.2f}"
+    segment = float(ident.get("metric", 0.0))
+    return f"named by no class: segment {segment:.2f}, {model} < {c.identify_threshold}"
 
 
 def _pose_segments(
@@ -309,15 +309,18 @@ def _pose_segments(
         quality = pose.get("pose_quality")
         passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
         reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]
-        if cluster in weak and pose.get("pose") is not None:
-            posed = transform_points(np.asarray(pose["pose"]), prepared[name].points)
-            table = points_table(
-                [posed], capture, _maps(seg, compare_options), classes, compare_options
-            )
-            ident["model_metric"] = float(table.metric[0, list(classes).index(name)])
-            if ident["model_metric"] < compare_options.identify_threshold:
-                passed, reasons = False, [_weak_reason(ident, name, compare_options)]
-        if options.require_reprojection and name in class_diameters_m and not passed:
+        unnamed = False  # a weakly named segment counts only when its posed model names it
+        if cluster in weak:
+            if pose.get("pose") is not None:
+                posed = transform_points(np.asarray(pose["pose"]), prepared[name].points)
+                table = points_table(
+                    [posed], capture, _maps(seg, compare_options), classes, compare_options
+                )
+                ident["model_metric"] = float(table.metric[0, list(classes).index(name)])
+            unnamed = ident.get("model_metric", 0.0) < compare_options.identify_threshold
+            if unnamed:
+                reasons = [_weak_reason(ident, name, compare_options), *reasons]
+        if unnamed or (options.require_reprojection and name in class_diameters_m and not passed):
             rejected.append(
                 {
                     "object": name,

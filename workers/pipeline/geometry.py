@@ -80,6 +80,15 @@ def skew(vector: ArrayLike) -> NDArray[np.float64]:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
+def perpendicular_pair(unit_axis: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Two (3,) unit vectors ``u``, ``v`` with ``(u, v, unit_axis)`` right-handed and
+    orthonormal, for a (3,) axis of length 1 (not normalised here)."""
+    a = np.asarray(unit_axis, dtype=np.float64).reshape(3)
+    u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    return u, np.cross(a, u)
+
+
 def rotation_about_unit_axis(unit_axis: ArrayLike, angle_rad: float) -> NDArray[np.float64]:
     """(3, 3) rotation by ``angle_rad`` (right-handed) about a (3,) axis of length 1
     (Rodrigues: ``I + sin θ K + (1 − cos θ) K²``, ``K = skew(axis)``); not normalised here."""

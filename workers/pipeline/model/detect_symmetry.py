@@ -12,7 +12,13 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from workers.pipeline.errors import InputError
-from workers.pipeline.geometry import Mat4, Points, as_points, rotation_angle_deg
+from workers.pipeline.geometry import (
+    Mat4,
+    Points,
+    as_points,
+    perpendicular_pair,
+    rotation_angle_deg,
+)
 from workers.pipeline.model.symmetry_group import SymmetrySpec, rotation_about
 
 # distinct elements of the groups we detect (cyclic up to order 4, dihedral, octahedral)
@@ -215,9 +221,7 @@ def detect_symmetry(
         if not ok:
             continue
         flips: list[Mat4] = []
-        perp = np.cross(axis, [1.0, 0.0, 0.0] if abs(axis[0]) < 0.9 else [0.0, 1.0, 0.0])
-        perp /= np.linalg.norm(perp)
-        other = np.cross(axis, perp)
+        perp, other = perpendicular_pair(axis)
         for ang in np.radians(np.arange(0.0, 180.0, 15.0)):
             flip = rotation_about(np.cos(ang) * perp + np.sin(ang) * other, np.pi, centre)
             if scorer.mean_ratio(flip, coarse=True) < o.coarse_ratio:

@@ -18,6 +18,7 @@ from workers.pipeline.geometry import (
     Mat4,
     Points,
     make_rigid,
+    perpendicular_pair,
     rotation_from_rotvec,
     transform_points,
 )
@@ -312,9 +313,7 @@ def _inside_polygon(
     ``corners`` with unit ``normal`` (False for a degenerate polygon)."""
     if len(corners) < 3:
         return False
-    u = np.cross(normal, [1.0, 0.0, 0.0] if abs(normal[0]) < 0.9 else [0.0, 1.0, 0.0])
-    u /= np.linalg.norm(u)
-    v = np.cross(normal, u)
+    u, v = perpendicular_pair(normal)
     flat = np.column_stack([corners @ u, corners @ v])
     try:
         polygon = ConvexHull(flat)

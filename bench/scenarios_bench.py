@@ -243,6 +243,7 @@ def capture_data(scene_dir: Path, capture: str, recon: Path, quality: dict[str, 
         detections=detections,
         colors=np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
         alignment_residual_m=float(quality.get("alignment_residual_m") or 0.0),
+        photos={p.name: p for p in sorted((scene_dir / capture / "images").iterdir())},
     )
 
 

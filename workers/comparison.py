@@ -6,7 +6,9 @@ update (app.core.twin.advance, in seq order) in one transaction."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -28,6 +30,7 @@ from app.core import (
 from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, ObjectState
 from app.core.models import Change, SnapshotImage, utcnow
+from app.core.storage import Storage
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.files import cameras_from_file, read_cameras_file
 from workers.pipeline.compare.options import options_from_json
@@ -39,6 +42,8 @@ from workers.pipeline.pose.posing import pose_changes
 from workers.progress import weighted
 from workers.runner import JobContext, Published, drop_stale, publish, run_job, unpublish
 
+log = logging.getLogger(__name__)
+
 
 @dataclass(frozen=True)
 class CaptureFiles:
@@ -47,6 +52,7 @@ class CaptureFiles:
     cameras_key: str
     alignment_residual_m: float
     detections: dict[str, list[list[float]]]
+    photo_keys: dict[str, str]  # image name → stored photo
 
 
 @dataclass(frozen=True)
@@ -93,6 +99,7 @@ def _capture(session: Session, snapshot_id: str) -> CaptureFiles:
             ]
             for image in images
         },
+        photo_keys={image.name: image.file_key for image in images},
     )
 
 
@@ -154,7 +161,20 @@ def _capture_data(ctx: JobContext, files: CaptureFiles) -> CaptureData:
         },
         colors=np.asarray(cloud.colors, dtype=np.float64) if cloud.has_colors() else None,
         alignment_residual_m=files.alignment_residual_m,
+        photos=local_photos(ctx.storage, files.photo_keys),
     )
+
+
+def local_photos(storage: Storage, keys: dict[str, str]) -> dict[str, Path]:
+    """Local files of a capture's stored photos; one that cannot be fetched is left out (the
+    seen checks then go by depth alone for that camera)."""
+    out = {}
+    for name, key in keys.items():
+        try:
+            out[name] = storage.local_file(key)
+        except FileNotFoundError:
+            log.warning("photo %s (%s) is not stored: its seen checks go by depth", name, key)
+    return out
 
 
 def _compute(ctx: JobContext) -> ComparisonOutcome:

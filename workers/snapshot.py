@@ -160,7 +160,7 @@ def _reconstruct(ctx: JobContext, inputs: SnapshotInputs) -> tuple[Reconstructio
         ),
         progress=progress,
     )
-    return result, _inventory(ctx, inputs, result, records, progress)
+    return result, _inventory(ctx, inputs, result, records, images_dir, progress)
 
 
 def _inventory(
@@ -168,6 +168,7 @@ def _inventory(
     inputs: SnapshotInputs,
     result: ReconstructionResult,
     records: list[ingest.ImageRecord],
+    images_dir: Path,
     progress: Any,
 ) -> Inventory:
     """Every library object the reconstruction shows (workers.pipeline.inventory; empty
@@ -194,6 +195,7 @@ def _inventory(
             for r in records
         },
         colors=colors,
+        photos={r.name: images_dir / r.name for r in records if (images_dir / r.name).is_file()},
     )
     try:
         found = take_inventory(

@@ -3,9 +3,11 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.core import change_clusters
 from app.core.storage import LocalStorage
@@ -56,3 +58,17 @@ def test_every_cluster_is_kept_with_its_change_and_at_most_20000_points(tmp_path
     np.testing.assert_array_equal(stored[5].points_env, before.points_env.astype(np.float32))
     # the file stays small: 20 300 + 12 points of float32, compressed
     assert storage.path(key).stat().st_size < 20_312 * 12 * 1.1
+
+
+def test_a_photo_missing_from_storage_is_left_out_not_fatal(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The seen checks read the capture's stored photos; one that is gone leaves its camera
+    to depth alone, with a warning, instead of failing the comparison."""
+    storage = LocalStorage(tmp_path)
+    storage.write_bytes("snapshots/s-1/images/a.jpg", b"jpeg")
+    keys = {"a.jpg": "snapshots/s-1/images/a.jpg", "b.jpg": "snapshots/s-1/images/b.jpg"}
+    with caplog.at_level(logging.WARNING, logger="workers.comparison"):
+        photos = comparison.local_photos(storage, keys)
+    assert list(photos) == ["a.jpg"] and photos["a.jpg"].read_bytes() == b"jpeg"
+    assert "b.jpg" in caplog.text

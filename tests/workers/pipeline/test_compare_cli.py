@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -19,7 +20,7 @@ from tests.workers.pipeline.compare_scene import (
 )
 from workers.pipeline.__main__ import main
 from workers.pipeline.compare import CaptureData
-from workers.pipeline.compare.files import load_capture, load_labels
+from workers.pipeline.compare.files import load_capture, load_labels, read_photo
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import invert_rigid
 
@@ -91,3 +92,37 @@ def test_cli_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str
     bad.write_text("0 0.5 0.5 0.1 0.1\n0 0.5 0.5 1.5 0.1\n")
     with pytest.raises(InputError, match=r"bad.txt line 2: w = 1.5 is outside 0..1"):
         load_labels(bad)
+
+
+def test_a_capture_folder_brings_its_photos_read_undistorted_and_reduced(tmp_path: Path) -> None:
+    """Photos in images/ beside labels/ come with the capture; read_photo reads one at a
+    reduced size, undistorted by the camera's lens, and gives None for a photo it cannot
+    use (unreadable, or not the camera's size)."""
+    import cv2
+
+    cams = ring_cameras()
+    write_capture(tmp_path / "cap", capture([crate(0.0, 0.0)], cams, 1))
+    (tmp_path / "cap" / "images").mkdir()
+    cam = cams[0]
+    img = np.zeros((cam.height, cam.width, 3), np.uint8)
+    img[:, : cam.width // 2] = (255, 0, 0)  # blue on the left (BGR)
+    img[cam.height // 2 - 20 : cam.height // 2 + 20, cam.width - 60 : cam.width - 20] = 255
+    cv2.imwrite(str(tmp_path / "cap" / "images" / f"{cam.name}.png"), img)
+    (tmp_path / "cap" / "images" / f"{cams[1].name}.png").write_bytes(b"not an image")
+    loaded = load_capture(tmp_path / "cap")
+    assert sorted(loaded.photos) == [f"{cams[0].name}.png", f"{cams[1].name}.png"]
+    first, second = loaded.cameras[0], loaded.cameras[1]
+    photo = read_photo(loaded.photos[first.name], first, 256)
+    assert photo is not None and photo.dtype == np.float32
+    assert max(photo.shape[:2]) >= 256 and max(photo.shape[:2]) < max(cam.width, cam.height)
+    np.testing.assert_allclose(photo[5, 5], [0.0, 0.0, 1.0])  # RGB
+    assert read_photo(loaded.photos[second.name], second, 256) is None
+    small = replace(first, width=first.width // 2)
+    assert read_photo(loaded.photos[first.name], small, 256) is None
+    # a barrel lens moves the white patch near the edge inwards once undistorted
+    barrel = replace(first, distortion=(-0.3, 0.0, 0.0, 0.0, 0.0))
+    straight = read_photo(loaded.photos[first.name], barrel, 256)
+    assert straight is not None
+    cols = np.flatnonzero(photo[photo.shape[0] // 2, :, 1] > 0.5)
+    cols_straight = np.flatnonzero(straight[straight.shape[0] // 2, :, 1] > 0.5)
+    assert cols_straight.max() > cols.max()

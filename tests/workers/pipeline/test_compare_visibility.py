@@ -20,6 +20,8 @@ from workers.pipeline.compare import PRESETS, Camera, compare_snapshots
 from workers.pipeline.compare.visibility import (
     box_from_pixels,
     depth_votes,
+    photo_agreement,
+    project_in_image,
     render_depth,
     visible_points,
 )
@@ -62,6 +64,59 @@ def test_seen_empty_needs_a_surface_behind() -> None:
         for c in (behind, in_front, np.zeros((0, 3)))  # none: nothing seen → unknown
     ]
     assert counts == [1, 0, 0]
+
+
+def _photo(cam: Camera, cloud: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """What ``cam`` photographs of a coloured cloud: each pixel the colour of the nearest
+    point splatted there (a 5 × 5 splat, gaps grey), (h, w, 3) RGB in [0, 1]."""
+    uv, z, inside = project_in_image(cam, cloud)
+    photo = np.full((cam.height, cam.width, 3), 0.5, np.float32)
+    zbuf = np.full((cam.height, cam.width), np.inf)
+    for i in np.argsort(-z):
+        if inside[i]:
+            x, y = int(uv[i, 0]), int(uv[i, 1])
+            rows, cols = slice(max(0, y - 2), y + 3), slice(max(0, x - 2), x + 3)
+            closer = zbuf[rows, cols] > z[i]
+            photo[rows, cols][closer] = colours[i]
+            zbuf[rows, cols][closer] = z[i]
+    return photo
+
+
+def test_the_photo_vetoes_a_view_through_what_the_cloud_misses() -> None:
+    """A red box stands in front of a blue wall; the cloud lost the box. The z-buffer then
+    shows the wall through the box's place, but the photo shows red there: no camera saw
+    that place empty. Where nothing stands, the photo shows the wall: seen empty."""
+    k = np.array([[400.0, 0, 320], [0, 400, 240], [0, 0, 1]])
+    cam = Camera("c", k, 640, 480, look_at((3, 0, 1), (0, 0, 0.5)))
+    back = wall(0) - [3.0, 0, 0]  # the wall at x = −1.8, behind the box
+    rng = np.random.default_rng(1)
+    box = rng.uniform([-0.1, -0.1, 0.4], [0.1, 0.1, 0.6], (3000, 3))
+    blue, red = np.array([0.1, 0.2, 0.8]), np.array([0.9, 0.1, 0.1])
+    photo = _photo(cam, np.concatenate([back, box]), np.array([blue] * len(back) + [red] * 3000))
+    cloud, cloud_colours = back.astype(np.float32), np.tile(blue, (len(back), 1)).astype(np.float32)
+    dm = render_depth(cam, cloud, colors=cloud_colours, photo=photo * 0.8, colour_tolerance=0.1)
+    assert dm.photo_agrees is not None
+    inside_box, beside_box = np.array([[0.0, 0.0, 0.5]]), np.array([[0.0, 0.25, 0.5]])
+    assert depth_votes(inside_box, [dm])[0][0] == 0
+    assert depth_votes(beside_box, [dm])[0][0] == 1
+    # depth alone (no photo) sees both places empty
+    blind = render_depth(cam, cloud, colors=cloud_colours)
+    assert blind.photo_agrees is None
+    assert depth_votes(np.concatenate([inside_box, beside_box]), [blind])[0].tolist() == [1, 1]
+
+
+def test_photo_agreement_matches_gains_and_lets_empty_pixels_through() -> None:
+    rng = np.random.default_rng(0)
+    colours = rng.uniform(0.2, 0.8, (40 * 50, 3)).astype(np.float32)
+    index = np.arange(40 * 50).reshape(40, 50)
+    index[:5] = -1  # no surface: nothing to contradict
+    photo = colours[np.maximum(index, 0)] / np.array([1.25, 1.0, 0.8], np.float32)  # exposure
+    photo[:5] = 0.0
+    photo[20, 20] = [1.0, 0.0, 0.0]
+    agrees = photo_agreement(index, colours, photo, 0.05)
+    assert agrees[:5].all()
+    assert not agrees[20, 20]
+    assert agrees.sum() == agrees.size - 1
 
 
 def test_robust_box_ignores_stray_points() -> None:

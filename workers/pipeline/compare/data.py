@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,14 +41,17 @@ def as_detections(rows: ArrayLike, name: str = "detections") -> FloatArray:
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """One calibrated image: ``k`` (3, 3) pixels, image ``width`` × ``height`` pixels and
-    ``cam_from_env`` (4, 4) rigid, metres, OpenCV axes."""
+    """One calibrated image: ``k`` (3, 3) pixels, image ``width`` × ``height`` pixels,
+    ``cam_from_env`` (4, 4) rigid, metres, OpenCV axes, and the lens's OpenCV
+    ``distortion`` (k1, k2, p1, p2, k3), used only to undistort the photo itself
+    (detections and projections take the pinhole part)."""
 
     name: str
     k: FloatArray
     width: int
     height: int
     cam_from_env: FloatArray
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     def __post_init__(self) -> None:
         k = np.asarray(self.k, dtype=np.float64)
@@ -71,7 +75,9 @@ class CaptureData:
     ``cameras`` the capture's calibrated images; ``detections`` maps an image name to its
     YOLO rows (see :func:`as_detections`; a missing name means no detections);
     ``alignment_residual_m`` the residual of aligning this capture to the environment frame
-    (used by the level-of-detection threshold).
+    (used by the level-of-detection threshold); ``photos`` maps an image name to its file
+    (read only to check what the cameras saw against the cloud's colours; a missing name
+    means no such check for that camera).
     """
 
     points_env: FloatArray
@@ -79,6 +85,7 @@ class CaptureData:
     detections: Mapping[str, FloatArray] = field(default_factory=dict)
     colors: FloatArray | None = None
     alignment_residual_m: float = 0.0
+    photos: Mapping[str, Path] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         pts = as_points(self.points_env, "points_env")

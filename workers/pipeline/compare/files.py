@@ -7,6 +7,8 @@ A capture folder holds:
   count; distortion parameters are ignored (images are taken as undistorted);
 - ``labels/<image stem>.txt``: YOLO detections (:mod:`app.formats.yolo`), ``class cx cy w h
   [conf]`` normalised;
+- ``images/`` beside the labels folder (optional): the photos, by image name, read to check
+  what each camera saw against the cloud's colours;
 - ``classes.txt`` (optional here): one class name per line, line i = class id i;
 - ``alignment.json`` (optional): ``{"residual_m": float}``.
 Every function raises InputError naming the file (and line) at fault.
@@ -45,7 +47,7 @@ def cameras_from_file(cameras: CamerasFile, where: str = "cameras.json") -> tupl
         k = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
         env_from_cam = np.asarray(cameras.poses[name], dtype=np.float64)
         cam_from_env = np.asarray(np.linalg.inv(env_from_cam), dtype=np.float64)
-        cams.append(Camera(name, k, camera.width, camera.height, cam_from_env))
+        cams.append(Camera(name, k, camera.width, camera.height, cam_from_env, camera.distortion))
     return tuple(cams)
 
 
@@ -117,7 +119,33 @@ def load_capture(folder: Path, labels_dir: Path | None = None) -> CaptureData:
     residual = 0.0
     if (folder / "alignment.json").is_file():
         residual = float(json.loads((folder / "alignment.json").read_text())["residual_m"])
-    return CaptureData(points, tuple(cams), dets, colors, residual)
+    photos = {c.name: labels.parent / "images" / c.name for c in cams}
+    photos = {name: f for name, f in photos.items() if f.is_file()}
+    return CaptureData(points, tuple(cams), dets, colors, residual, photos)
+
+
+def read_photo(path: Path, camera: Camera, max_side: int) -> NDArray[np.float32] | None:
+    """The photo of ``camera`` as (H, W, 3) RGB in [0, 1], undistorted with the camera's
+    lens, read at a reduced size (a power of two, still ≥ ``max_side`` on its long side);
+    None when the file cannot be read or is not the camera's size (then the caller goes
+    without it)."""
+    import cv2  # heavy: imported only when a photo is read
+
+    long_side = max(camera.width, camera.height)
+    factor = next((f for f in (8, 4, 2) if long_side / f >= max_side), 1)
+    flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}
+    img = cv2.imread(str(path), flags.get(factor, cv2.IMREAD_REDUCED_COLOR_8))
+    if img is None:
+        return None
+    w, h = round(camera.width / factor), round(camera.height / factor)
+    if abs(img.shape[1] - w) > 1 or abs(img.shape[0] - h) > 1:
+        return None
+    if any(camera.distortion):
+        k = camera.k.copy()
+        k[:2] *= np.array([[img.shape[1] / camera.width], [img.shape[0] / camera.height]])
+        img = cv2.undistort(img, k, np.asarray(camera.distortion))
+    rgb: NDArray[np.float32] = img[:, :, ::-1].astype(np.float32) / np.float32(255.0)
+    return rgb
 
 
 def load_classes(path: Path) -> list[str]:

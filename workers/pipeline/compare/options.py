@@ -171,6 +171,10 @@ class CompareOptions:
     seen_tolerance_m: float = 0.005
     # extra seen-check tolerance: the depth span of this many z-buffer pixels
     seen_tolerance_px: float = 1.0
+    # a camera's view through a place counts only where its photo shows the colour of the
+    # surface behind (every RGB channel within this, 0-1, gains matched): the cloud can
+    # miss an object the photo shows; None: depth alone. Raise for noisy colours
+    seen_colour_tolerance: float | None = 0.1
     # long side of the seen checks' own z-buffers, pixels (None: zbuffer_max_side's);
     # finer ones see lower objects go, at more time
     seen_zbuffer_max_side: int | None = 512
@@ -267,6 +271,8 @@ class CompareOptions:
             raise InputError("options seen_tolerance_m and seen_tolerance_px must be ≥ 0")
         if self.seen_zbuffer_max_side is not None and not self.seen_zbuffer_max_side > 0:
             raise InputError("option seen_zbuffer_max_side must be > 0 or null")
+        if self.seen_colour_tolerance is not None and not 0 < self.seen_colour_tolerance <= 1:
+            raise InputError("option seen_colour_tolerance must be in (0, 1] or null")
         for name in ("twin_identify_threshold", "still_there_metric"):
             value = getattr(self, name)
             if value is not None and not 0.0 < value <= 1.0:

@@ -44,6 +44,7 @@ from workers.pipeline.compare.evidence import (
     parts_of_standing_objects,
     still_there,
 )
+from workers.pipeline.compare.files import read_photo
 from workers.pipeline.compare.options import PRESETS, CompareOptions
 from workers.pipeline.compare.results import ClusterResult, CompareResult, Side
 from workers.pipeline.compare.side_clusters import Library, SideInput, side_clusters
@@ -59,14 +60,27 @@ def render_depth_maps(
     capture: CaptureData, options: CompareOptions, max_side: int | None = None
 ) -> list[DepthMap]:
     """One z-buffer per camera of ``capture`` from (a seeded subset of) its own cloud,
-    ``max_side`` pixels on its long side (default ``zbuffer_max_side``)."""
+    ``max_side`` pixels on its long side (default ``zbuffer_max_side``), each checked
+    against the camera's photo where the capture has it and its cloud has colours (unless
+    ``seen_colour_tolerance`` is None)."""
     side = options.zbuffer_max_side if max_side is None else max_side
-    pts = capture.points_env
+    pts, colors = capture.points_env, capture.colors
     if len(pts) > options.zbuffer_max_points:
         rng = np.random.default_rng(options.seed)
-        pts = pts[rng.choice(len(pts), options.zbuffer_max_points, replace=False)]
+        pick = rng.choice(len(pts), options.zbuffer_max_points, replace=False)
+        pts = pts[pick]
+        colors = None if colors is None else colors[pick]
     pts32 = np.ascontiguousarray(pts.T, dtype=np.float32)  # (3, N) columns
-    return [render_depth(cam, pts32, side, options.zbuffer_fill_px) for cam in capture.cameras]
+    tol = options.seen_colour_tolerance
+    colors32 = None if colors is None or tol is None else colors.astype(np.float32)
+    maps = []
+    for cam in capture.cameras:
+        path = capture.photos.get(cam.name) if colors32 is not None else None
+        photo = None if path is None else read_photo(path, cam, side)
+        maps.append(
+            render_depth(cam, pts32, side, options.zbuffer_fill_px, colors32, photo, tol or 0.0)
+        )
+    return maps
 
 
 def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:

@@ -7,6 +7,12 @@ let hidden points show through. A point is *visible* from a camera when it proje
 the image, in front of the camera, and its depth ≤ z-buffer depth + tolerance, where
 ``tolerance(d) = tol_m + tol_px · d / f_zbuffer`` (a fixed part plus ``tol_px`` z-buffer
 pixels' worth of footprint, for slanted surfaces). Depths in metres along the camera's z.
+
+A z-buffer drawn from the fused cloud holds surfaces its camera never saw: where an object
+is missing from the cloud, the wall behind it (reconstructed from other views) shows
+through. With the camera's photo, :func:`photo_agreement` marks the pixels where the photo
+shows the colour of the surface the z-buffer holds; only there does the camera's view of
+"empty space in front of that surface" count (:func:`depth_votes`).
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import minimum_filter
@@ -30,11 +37,14 @@ BoolArray = NDArray[np.bool_]
 @dataclass(frozen=True, eq=False)
 class DepthMap:
     """A camera's z-buffer: ``depth`` (h, w) float32 metres (inf where nothing projects) at
-    ``scale`` z-buffer pixels per image pixel."""
+    ``scale`` z-buffer pixels per image pixel; ``photo_agrees`` (h, w) bool, where the
+    camera's photo shows the surface the z-buffer holds (None: no photo, every pixel
+    counts)."""
 
     camera: Camera
     depth: NDArray[np.float32]
     scale: float
+    photo_agrees: NDArray[np.bool_] | None = None
 
     @property
     def focal_px(self) -> float:
@@ -63,22 +73,15 @@ def _camera_coords(
     return xc, yc, zc
 
 
-def render_depth(
-    camera: Camera, points_env: NDArray[np.float32], max_side: int = 256, fill_px: int = 1
-) -> DepthMap:
-    """Z-buffer of (N, 3) environment points splatted into ``camera`` (float32 maths).
-
-    ``points_env`` may also be given as a (3, N) C-contiguous array of columns (faster).
-    """
-    cols = points_env if points_env.shape[0] == 3 and points_env.ndim == 2 else points_env.T
-    if len(cols) != 3:
-        raise ShapeError(f"points_env must be (N, 3) or (3, N), got {points_env.shape}")
-    cols = np.ascontiguousarray(cols, dtype=np.float32)
-    scale = zbuffer_scale(camera, max_side)
+def _splat(
+    camera: Camera, cols: NDArray[np.float32], scale: float
+) -> tuple[NDArray[np.int64], NDArray[np.float32], NDArray[np.int64], int, int]:
+    """Z-buffer pixel (linear index), depth and source index of each (3, N) column point
+    that projects in front of ``camera`` into its image; and the buffer's width, height."""
     w = max(1, round(camera.width * scale))
     h = max(1, round(camera.height * scale))
     xc, yc, zc = _camera_coords(camera.cam_from_env, cols[0], cols[1], cols[2])
-    front = zc > 1e-6
+    front = np.flatnonzero(zc > 1e-6)
     xc, yc, zc = xc[front], yc[front], zc[front]
     k = camera.k
     sx, sy = w / camera.width, h / camera.height
@@ -88,21 +91,106 @@ def render_depth(
     v = yn * np.float32(k[1, 1] * sy) + np.float32(k[1, 2] * sy)
     ok = (u >= 0) & (u < w) & (v >= 0) & (v < h)
     lin = v[ok].astype(np.int64) * w + u[ok].astype(np.int64)
+    return lin, zc[ok], front[ok], w, h
+
+
+def _surface_index(
+    lin: NDArray[np.int64],
+    z: NDArray[np.float32],
+    source: NDArray[np.int64],
+    raw: NDArray[np.float32],
+    depth: NDArray[np.float32],
+    fill_px: int,
+) -> NDArray[np.int64]:
+    """(h, w) index of the point whose surface each pixel of the filled z-buffer ``depth``
+    holds: the point that won the pixel in the ``raw`` buffer, or where the minimum filter
+    took a neighbour's depth (within ``fill_px``), that neighbour's; −1 where none."""
+    h, w = depth.shape
+    own = np.full(h * w, -1, dtype=np.int64)
+    won = z <= raw.reshape(-1)[lin]
+    own[lin[won]] = source[won]
+    out = np.where(raw.reshape(-1) == depth.reshape(-1), own, -1)
+    todo = np.flatnonzero((out < 0) & np.isfinite(depth.reshape(-1)))
+    rows, cols = np.divmod(todo, w)
+    for dy in range(-fill_px, fill_px + 1):
+        for dx in range(-fill_px, fill_px + 1):
+            r, c = np.clip(rows + dy, 0, h - 1), np.clip(cols + dx, 0, w - 1)
+            take = (out[todo] < 0) & (raw[r, c] == depth.reshape(-1)[todo])
+            out[todo[take]] = own[r[take] * w + c[take]]
+    return out.reshape(h, w)
+
+
+def render_depth(
+    camera: Camera,
+    points_env: NDArray[np.float32],
+    max_side: int = 256,
+    fill_px: int = 1,
+    colors: NDArray[np.float32] | None = None,
+    photo: NDArray[np.float32] | None = None,
+    colour_tolerance: float = 0.1,
+) -> DepthMap:
+    """Z-buffer of (N, 3) environment points splatted into ``camera`` (float32 maths).
+
+    ``points_env`` may also be given as a (3, N) C-contiguous array of columns (faster).
+    With the points' (N, 3) ``colors`` and the camera's ``photo`` (H, W, 3), both RGB in
+    [0, 1] (the photo at any size, resized to the buffer's grid), the map gets
+    ``photo_agrees`` (:func:`photo_agreement` within ``colour_tolerance``).
+    """
+    cols = points_env if points_env.shape[0] == 3 and points_env.ndim == 2 else points_env.T
+    if len(cols) != 3:
+        raise ShapeError(f"points_env must be (N, 3) or (3, N), got {points_env.shape}")
+    cols = np.ascontiguousarray(cols, dtype=np.float32)
+    scale = zbuffer_scale(camera, max_side)
+    lin, z, source, w, h = _splat(camera, cols, scale)
     buf = np.full(w * h, np.inf, dtype=np.float32)
-    np.minimum.at(buf, lin, zc[ok])
-    depth = buf.reshape(h, w)
-    if fill_px > 0:
-        depth = minimum_filter(depth, size=2 * fill_px + 1, mode="nearest")
-    return DepthMap(camera=camera, depth=depth, scale=scale)
+    np.minimum.at(buf, lin, z)
+    raw = buf.reshape(h, w)
+    depth = minimum_filter(raw, size=2 * fill_px + 1, mode="nearest") if fill_px > 0 else raw
+    agrees = None
+    if colors is not None and photo is not None:
+        index = _surface_index(lin, z, source, raw, depth, fill_px)
+        small = np.asarray(cv2.resize(photo, (w, h), interpolation=cv2.INTER_AREA), np.float32)
+        agrees = photo_agreement(index, colors, small, colour_tolerance)
+    return DepthMap(camera=camera, depth=depth, scale=scale, photo_agrees=agrees)
+
+
+def photo_agreement(
+    surface_index: NDArray[np.int64],
+    colors: NDArray[np.float32],
+    photo_rgb: NDArray[np.float32],
+    tolerance: float,
+) -> NDArray[np.bool_]:
+    """(h, w) pixels where the camera's photo (h, w, 3, RGB in [0, 1], on the z-buffer's
+    grid) shows the colour of the surface the z-buffer holds (``surface_index`` (h, w) into
+    the (N, 3) ``colors``, −1 where none): every channel within ``tolerance`` once the
+    photo's gain per channel is matched to the cloud's (the median ratio over a sample of
+    the pixels with a surface: exposure and white balance differ from photo to photo, the
+    cloud's colours are averages). Pixels without a surface agree (nothing to contradict)."""
+    has = surface_index >= 0
+    surface, photo = colors[surface_index[has]], photo_rgb[has]
+    sample = slice(None, None, 4)
+    bright = (photo[sample] > 0.02).all(axis=1)
+    gain = np.ones(3, dtype=np.float32)
+    if np.count_nonzero(bright) >= 100:
+        gain = np.median(surface[sample][bright] / photo[sample][bright], axis=0)
+    agrees = np.ones(surface_index.shape, dtype=bool)
+    agrees[has] = np.abs(photo * gain.astype(np.float32) - surface).max(axis=1) <= tolerance
+    return agrees
+
+
+def _pixels(depth_map: DepthMap, uv: FloatArray) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Z-buffer rows and columns of image pixels ``uv`` (N, 2) (clipped to the buffer)."""
+    h, w = depth_map.depth.shape
+    cam = depth_map.camera
+    col = np.clip((uv[:, 0] * (w / cam.width)).astype(np.int64), 0, w - 1)
+    row = np.clip((uv[:, 1] * (h / cam.height)).astype(np.int64), 0, h - 1)
+    return row, col
 
 
 def _lookup(depth_map: DepthMap, uv: FloatArray, inside: BoolArray) -> FloatArray:
     """Z-buffer depth at image pixels ``uv`` (N, 2) where ``inside``; inf elsewhere."""
-    h, w = depth_map.depth.shape
-    cam = depth_map.camera
     out = np.full(len(uv), np.inf)
-    col = np.clip((uv[inside, 0] * (w / cam.width)).astype(np.int64), 0, w - 1)
-    row = np.clip((uv[inside, 1] * (h / cam.height)).astype(np.int64), 0, h - 1)
+    row, col = _pixels(depth_map, uv[inside])
     out[inside] = depth_map.depth[row, col]
     return out
 
@@ -161,9 +249,11 @@ def depth_votes(
 ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """For (N, 3) points, how many cameras of ``depth_maps`` see each place *empty* (the
     point projects into the image, in front, and the surface at its pixel lies behind it
-    by more than the tolerance) and how many see a surface *there* (within the
-    tolerance). A pixel with no surface (inf) or a surface in front (occlusion) is no
-    evidence either way."""
+    by more than the tolerance, and the camera's photo shows that surface where the map
+    has ``photo_agrees``) and how many see a surface *there* (within the tolerance). A
+    pixel with no surface (inf) or a surface in front (occlusion) is no evidence either
+    way, nor is a surface behind that the photo does not show (the cloud misses what
+    stands in front of it there)."""
     empty = np.zeros(len(points_env), dtype=np.int64)
     there = np.zeros(len(points_env), dtype=np.int64)
     for dm in depth_maps:
@@ -172,8 +262,12 @@ def depth_votes(
         tol = tolerance(dm, z, tol_m, tol_px)
         with np.errstate(invalid="ignore"):
             seen = inside & np.isfinite(zbuf)
-            empty += seen & (zbuf > z + tol)
+            behind = seen & (zbuf > z + tol)
             there += seen & (np.abs(zbuf - z) <= tol)
+        if dm.photo_agrees is not None and behind.any():
+            rows, cols = _pixels(dm, uv[behind])
+            behind[np.flatnonzero(behind)] = dm.photo_agrees[rows, cols]
+        empty += behind
     return empty, there
 
 

@@ -46,6 +46,8 @@ from bench.scenarios_bench import (
     TMP,
     _hash_inputs,
     capture_data,
+    cloud_digest,
+    machine,
     pose_figures,
     prepared_models,
     reconstruct_capture,
@@ -359,6 +361,7 @@ def run_world(
         scored["inventory_s"] = round(wall, 2)
         scored["inventory_cpu_s"] = round(cpu, 2)
         scored["points"] = len(data.points_env)
+        scored["cloud_sha256"] = cloud_digest(recon)
         scored["views"] = len(data.cameras)
         out["captures"][capture] = scored
     twin = twin_check(
@@ -506,7 +509,7 @@ def main(argv: list[str] | None = None) -> int:
         "reconstruct_preset": recon_preset,
         "detection": vars(base.detection),
         "options": options.to_json(),
-        "cpus": os.cpu_count(),
+        "machine": machine(),
         "load_average": os.getloadavg(),
         "worlds": {},
     }

@@ -35,6 +35,7 @@ import hashlib
 import json
 import math
 import os
+import platform
 import shutil
 import statistics
 import sys
@@ -195,6 +196,24 @@ def _pinhole(intrinsics: dict[str, Any]) -> dict[str, Any]:
     camera = read_cameras({"intrinsics": intrinsics}).intrinsics
     assert camera is not None
     return {**intrinsics, "model": "PINHOLE", "params": list(camera.pinhole)}
+
+
+def cloud_digest(recon: Path) -> str:
+    """The first 16 hex digits of the SHA-256 of a reconstruction's cloud.ply: two bench runs
+    on the same clouds show the same digest (SfM repeats bit for bit on one machine only)."""
+    return hashlib.sha256((recon / "cloud.ply").read_bytes()).hexdigest()[:16]
+
+
+def machine() -> dict[str, Any]:
+    """The CPU the figures come from, by model name, and how many (clouds differ from one
+    CPU to another)."""
+    cpuinfo = Path("/proc/cpuinfo")
+    lines = cpuinfo.read_text().splitlines() if cpuinfo.is_file() else []
+    model = next(
+        (line.split(":", 1)[1].strip() for line in lines if line.startswith("model name")),
+        platform.machine(),
+    )
+    return {"cpu": model, "cpus": os.cpu_count()}
 
 
 def capture_quality(scene_dir: Path, capture: str, recon: Path) -> dict[str, Any]:
@@ -476,6 +495,7 @@ def run_scenario(
             "reprojection_error_px": before_q.get("mean_reprojection_error_px"),
             "stage_timings_s": before_q.get("timings_s"),
             "cached": before_cached,
+            "cloud_sha256": cloud_digest(before_dir),
         },
         "after": {
             **capture_quality(scene_dir, "after", after_dir),
@@ -485,6 +505,7 @@ def run_scenario(
             "alignment_residual_m": after_q.get("alignment_residual_m"),
             "stage_timings_s": after_q.get("timings_s"),
             "cached": after_cached,
+            "cloud_sha256": cloud_digest(after_dir),
         },
     }
     _timed(timings, "quality_metrics", t0)
@@ -705,7 +726,7 @@ def run_world_set(args: argparse.Namespace) -> int:
         "compare_options": options_from_json("default").to_json(),
         "model_prepare_s": prep_s,
         "load_average": os.getloadavg(),
-        "cpus": os.cpu_count(),
+        "machine": machine(),
         "variants": {},
     }
     variants = [("ideal_camera", False)] + ([("real_camera", True)] if args.real_camera else [])

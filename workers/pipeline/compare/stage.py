@@ -75,11 +75,12 @@ def render_depth_maps(
     colors32 = None if colors is None or tol is None else colors.astype(np.float32)
     maps = []
     for cam in capture.cameras:
-        path = capture.photos.get(cam.name) if colors32 is not None else None
-        photo = None if path is None else read_photo(path, cam, side)
-        maps.append(
-            render_depth(cam, pts32, side, options.zbuffer_fill_px, colors32, photo, tol or 0.0)
-        )
+        path = capture.photos.get(cam.name)
+        if colors32 is None or tol is None or path is None:
+            maps.append(render_depth(cam, pts32, side, options.zbuffer_fill_px))
+            continue
+        photo = read_photo(path, cam, side)
+        maps.append(render_depth(cam, pts32, side, options.zbuffer_fill_px, colors32, photo, tol))
     return maps
 
 

@@ -2,7 +2,8 @@
 
 Reads two capture folders (see files.py; a ``reconstruct`` output folder is one, with
 ``--before-labels``/``--after-labels`` and ``--classes`` pointing at the captures' YOLO
-files), compares them and writes the comparison JSON
+files; the photos are read from ``images/`` beside each labels folder when it is there),
+compares them and writes the comparison JSON
 (docs/contract.md "A comparison", without the service's ids) to ``--out`` or stdout, and the
 changed points of each cluster to ``--clusters-dir`` as ``cluster_<id>_<side>.npy`` when
 asked. Exit codes: 0 ok, 2 bad input, 3 comparison failed.

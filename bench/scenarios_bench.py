@@ -200,7 +200,8 @@ def _pinhole(intrinsics: dict[str, Any]) -> dict[str, Any]:
 
 def cloud_digest(recon: Path) -> str:
     """The first 16 hex digits of the SHA-256 of a reconstruction's cloud.ply: two bench runs
-    on the same clouds show the same digest (SfM repeats bit for bit on one machine only)."""
+    on the same clouds show the same digest (SfM repeats bit for bit on one kind of machine,
+    not across kinds)."""
     return hashlib.sha256((recon / "cloud.ply").read_bytes()).hexdigest()[:16]
 
 

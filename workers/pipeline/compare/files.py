@@ -133,8 +133,13 @@ def read_photo(path: Path, camera: Camera, max_side: int) -> NDArray[np.float32]
 
     long_side = max(camera.width, camera.height)
     factor = next((f for f in (8, 4, 2) if long_side / f >= max_side), 1)
-    flags = {1: cv2.IMREAD_COLOR, 2: cv2.IMREAD_REDUCED_COLOR_2, 4: cv2.IMREAD_REDUCED_COLOR_4}
-    img = cv2.imread(str(path), flags.get(factor, cv2.IMREAD_REDUCED_COLOR_8))
+    flags = {
+        1: cv2.IMREAD_COLOR,
+        2: cv2.IMREAD_REDUCED_COLOR_2,
+        4: cv2.IMREAD_REDUCED_COLOR_4,
+        8: cv2.IMREAD_REDUCED_COLOR_8,
+    }
+    img = cv2.imread(str(path), flags[factor])
     if img is None:
         return None
     w, h = round(camera.width / factor), round(camera.height / factor)

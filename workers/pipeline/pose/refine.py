@@ -7,8 +7,9 @@ model points a camera could see (not those resting on the support), where near-s
 alternatives separate. The winner gets a last ICP on every model point and then a fit of
 the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene
 to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
-lifted onto its support when it sank into it, and set flat on it when it nearly rests
-there (``rest_max_tilt_deg``); that turn and the rotation the residual level hides
+lifted onto its support when it sank into it, and set flat on it when it touches it
+(within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified);
+that turn and the rotation the residual level hides
 (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) say how well the scan holds it.
 """
 
@@ -21,7 +22,7 @@ import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from workers.pipeline.geometry import Mat4, Points, transform_points
+from workers.pipeline.geometry import Mat4, Points, rotation_angle_deg, transform_points
 from workers.pipeline.model import make_cloud
 from workers.pipeline.model.symmetry_group import symmetric_pose_error
 from workers.pipeline.pose.candidates import (
@@ -66,7 +67,9 @@ class Refinement:
     ``inlier_distance_m`` of the scene, the ``best`` trial it came from and the
     ``rotation_slack_deg`` its residual level hides, and ``final_turn_deg``, how far the
     scan-to-model fit turned the ICP's pose, or the refit on the support turned the pose
-    set flat, whichever is more, modulo symmetry (both 0 when not computed)."""
+    set flat, whichever is more, modulo symmetry (both 0 when not computed), and
+    ``tipped_deg``, the tilt taken out when it touched its support on nothing it could rest
+    on (0 otherwise)."""
 
     env_from_object: Mat4
     score: float
@@ -77,6 +80,7 @@ class Refinement:
     best: Trial
     rotation_slack_deg: float = 0.0
     final_turn_deg: float = 0.0
+    tipped_deg: float = 0.0
 
 
 @dataclass
@@ -172,32 +176,39 @@ class Refiner:
             top,
         )
 
-    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> tuple[Mat4, float]:
-        """``pose`` set flat on its support when it nearly rests there: its lowest point
-        within ``max_sink_m`` of the plane (which reaches beyond it) and its base (−up of
-        the model: the library gives models resting on it), else the hull face nearest the
-        plane that holds its centre above it, within ``rest_max_tilt_deg`` of flat. That
-        face is turned flat about the object's centre, the turn about the plane's normal
-        and the shift across it refitted by the scan-to-model fit on the (M, 3) ``scene``
-        points, and the lowest point set on the plane. Objects stand on their supports:
-        the plane, fitted on thousands of floor points, holds the tilt and height better
-        than the object's own few hundred. Otherwise ``pose`` unchanged. Also returns how
-        far the refit turned it, degrees: beyond ``max_final_turn_deg`` the scan does not
-        hold that turn (the caller counts it against verification)."""
+    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> tuple[Mat4, float, float]:
+        """``pose`` set flat on its support when it touches it: its lowest point within
+        ``max_sink_m`` of the plane (which reaches beyond it). It is set on its base (−up of
+        the model: the library gives models resting on it), else on the hull face nearest
+        the plane that holds its centre above it: within ``rest_max_tilt_deg`` of flat, else
+        within ``max_set_down_tilt_deg`` (it touches the plane on nothing it could rest on,
+        so it would fall over: the scan, not the object, is tilted, as a hollow bowl's is;
+        tilted further, something holds it). That face is turned flat about the object's
+        centre, the turn about the plane's normal and the shift across it refitted by the
+        scan-to-model fit on the (M, 3) ``scene`` points, and the lowest point set on the
+        plane. Objects stand on their supports: the plane, fitted on thousands of floor
+        points, holds the tilt and height better than the object's own few hundred.
+        Otherwise ``pose`` unchanged.
+        Also returns, degrees, how far the refit turned it (beyond ``max_final_turn_deg``
+        the scan does not hold that turn) and the tilt taken out beyond the window (0
+        within it); the caller counts either against verification."""
         m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
         if support is None or o.rest_max_tilt_deg <= 0:
-            return pose, 0.0
+            return pose, 0.0, 0.0
         posed = transform_points(pose, m.points)
         on_support = self.ctx.region.on_support
         if abs(lowest_height(posed, support)) > o.max_sink_m or not plane_beyond(
             posed, on_support, 2 * m.voxel_m
         ):
-            return pose, 0.0
-        turn = resting_turn(
-            pose[:3, :3], self.rest_bases, self.hull_faces, support[:3], o.rest_max_tilt_deg
-        )
+            return pose, 0.0, 0.0
+        faces = (pose[:3, :3], self.rest_bases, self.hull_faces, support[:3])
+        turn = resting_turn(*faces, o.rest_max_tilt_deg)
+        tipped_deg = 0.0
         if turn is None:
-            return pose, 0.0
+            turn = resting_turn(*faces, o.max_set_down_tilt_deg)
+            if turn is None:
+                return pose, 0.0, 0.0
+            tipped_deg = rotation_angle_deg(turn)
         centre = pose[:3, :3] @ m.centre_object + pose[:3, 3]
         flat = np.eye(4)
         flat[:3, :3] = turn @ pose[:3, :3]
@@ -207,7 +218,7 @@ class Refiner:
         )
         refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
         rested[:3, 3] -= lowest_height(transform_points(rested, m.points), support) * support[:3]
-        return rested, refit_turn
+        return rested, refit_turn, tipped_deg
 
     def _picks(self, distinct: list[Trial]) -> list[Trial]:
         """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best
@@ -267,7 +278,7 @@ class Refiner:
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
-        env_from_object, rest_turn = self._at_rest(env_from_object, scene, reach)
+        env_from_object, rest_turn, tipped = self._at_rest(env_from_object, scene, reach)
         turn = max(turn, rest_turn)
         runner_up = next(
             (
@@ -296,4 +307,5 @@ class Refiner:
             best=best.trial,
             rotation_slack_deg=slack,
             final_turn_deg=turn,
+            tipped_deg=tipped,
         )

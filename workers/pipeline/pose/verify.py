@@ -69,7 +69,8 @@ def verify_fit(
     well are not a verified pose), or the cluster coverage is below
     ``min_cluster_coverage``, or the scan's residual level hides a turn of more than
     ``max_rotation_slack_deg`` or the last fit turned the refinement's ICP pose by more than
-    ``max_final_turn_deg`` (the scan does not settle its rotation). ``model_points``:
+    ``max_final_turn_deg`` (the scan does not settle its rotation), or it had to be set
+    down on its support from a tilt beyond the rest window. ``model_points``:
     (N, 3) object frame; ``cluster``: (K, 3) environment frame or None."""
     coverage: float | None = None
     if cluster is not None:
@@ -91,6 +92,11 @@ def verify_fit(
         rejections.append(
             f"the last fit turned the ICP pose by {fit.final_turn_deg:.1f}° "
             f"(> {o.max_final_turn_deg:.1f}°)"
+        )
+    if fit.tipped_deg > 0.0:
+        rejections.append(
+            f"it touched its support on nothing it could rest on: set down, turned by "
+            f"{fit.tipped_deg:.1f}° (> rest_max_tilt_deg {o.rest_max_tilt_deg:g}°)"
         )
     if coverage is not None and coverage < o.min_cluster_coverage:
         rejections.append(f"cluster coverage {coverage:.2f} < {o.min_cluster_coverage:.2f}")

@@ -99,9 +99,8 @@ class CandidatePool:
         t = icp_point_to_plane(
             m.down_points, m.down_normals, region.target_fine, t, scales[1] * v, 10
         )
-        # Open3D's multi-threaded RANSAC may return another of several tied hypotheses
-        # between runs of one seed; ICP takes them to the same pose up to ~1e-15, and
-        # rounding to 1e-9 (far below the accuracy) makes everything after bit-identical
+        # rounded to 1e-9 (far below the accuracy): starts that ICP takes to the same pose
+        # up to ~1e-15 (Open3D's RANSAC may return any of tied hypotheses) go on as one
         t = rounded_rigid(t, 9)
         pts = transform_points(t, m.down_points)
         tau = o.score_voxels * v

@@ -17,7 +17,8 @@ module each:
 5. :mod:`~workers.pipeline.pose.canonical`: one canonical pose among a symmetric object's
    equivalents.
 
-Deterministic for a given ``PoseOptions.seed``. Raises RegistrationError when no
+Seeded by ``PoseOptions.seed``, but not repeatable to the bit: Open3D's feature RANSAC
+may return other candidates between runs. Raises RegistrationError when no
 candidate is plausible, InputError/ShapeError for unusable inputs.
 """
 

@@ -834,3 +834,7 @@ def test_a_pose_tipping_on_its_support_is_set_down_and_beyond_the_window_unverif
     else:
         assert not result.verified and len(tipped) == 1
         assert f"turned by {tilt_deg:.1f}°" in tipped[0]
+        # a bound at or below the rest window turns the setting down off
+        off = replace(POSE_PRESETS["default"], max_set_down_tilt_deg=10.0)
+        kept = estimate_pose(model, scene, cluster_points_env=obj, options=off)
+        assert pose_error(kept.env_from_object, true)[1] == pytest.approx(tilt_deg, abs=2.0)

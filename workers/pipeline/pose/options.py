@@ -81,7 +81,7 @@ class PoseOptions:
     rest_max_tilt_deg: float = 10.0
     # a final pose touching its support on nothing it could rest on (its nearest resting
     # face tilted past rest_max_tilt_deg) is set down on it, unverified, up to this tilt,
-    # degrees; tilted more, something holds it; raise where scans tilt objects further
+    # degrees; tilted more, something holds it; ≤ rest_max_tilt_deg disables
     max_set_down_tilt_deg: float = 20.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer

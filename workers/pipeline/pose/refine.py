@@ -188,10 +188,10 @@ class Refiner:
         scan-to-model fit on the (M, 3) ``scene`` points, and the lowest point set on the
         plane. Objects stand on their supports: the plane, fitted on thousands of floor
         points, holds the tilt and height better than the object's own few hundred.
-        Otherwise ``pose`` unchanged.
-        Also returns, degrees, how far the refit turned it (beyond ``max_final_turn_deg``
-        the scan does not hold that turn) and the tilt taken out beyond the window (0
-        within it); the caller counts either against verification."""
+        Otherwise ``pose`` unchanged. Also returns, degrees, how far the refit turned it
+        (beyond ``max_final_turn_deg`` the scan does not hold that turn) and the tilt taken
+        out beyond the window (0 within it); the caller counts either against
+        verification."""
         m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
         if support is None or o.rest_max_tilt_deg <= 0:
             return pose, 0.0, 0.0
@@ -205,6 +205,8 @@ class Refiner:
         turn = resting_turn(*faces, o.rest_max_tilt_deg)
         tipped_deg = 0.0
         if turn is None:
+            if o.max_set_down_tilt_deg <= o.rest_max_tilt_deg:
+                return pose, 0.0, 0.0
             turn = resting_turn(*faces, o.max_set_down_tilt_deg)
             if turn is None:
                 return pose, 0.0, 0.0

@@ -33,6 +33,7 @@ from workers.pipeline.pose.fit import (
 )
 from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.result import Trial
+from workers.pipeline.seeded import seeded_open3d
 
 REG = o3d.pipelines.registration
 
@@ -255,19 +256,19 @@ def _ransac_candidates(pool: CandidatePool, round_: int) -> None:
         ):
             break  # two independent starts already agree on the best candidate
         tk = time.perf_counter()
-        o3d.utility.random.seed(o.seed * 1000 + k)
-        res = REG.registration_ransac_based_on_feature_matching(
-            region.down,
-            pool.model_features,
-            f_scene,
-            f_model,
-            False,
-            o.ransac_distance_voxels * v,
-            REG.TransformationEstimationPointToPoint(False),
-            3,
-            checkers,
-            REG.RANSACConvergenceCriteria(o.ransac_max_iterations, o.ransac_confidence),
-        )
+        with seeded_open3d(o.seed * 1000 + k):
+            res = REG.registration_ransac_based_on_feature_matching(
+                region.down,
+                pool.model_features,
+                f_scene,
+                f_model,
+                False,
+                o.ransac_distance_voxels * v,
+                REG.TransformationEstimationPointToPoint(False),
+                3,
+                checkers,
+                REG.RANSACConvergenceCriteria(o.ransac_max_iterations, o.ransac_confidence),
+            )
         if len(res.correspondence_set) >= 3:
             t_res = np.asarray(res.transformation, dtype=np.float64)
             pool.polish(invert_rigid(t_res), f"ransac seed {k}", tk)

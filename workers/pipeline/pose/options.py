@@ -91,7 +91,7 @@ class PoseOptions:
     max_final_turn_deg: float = 3.0
     # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85
-    # seed of RANSAC and the support-plane search (Open3D's RANSAC may still vary by run)
+    # seed of RANSAC and the support-plane search: one seed, one result
     seed: int = 0
 
 

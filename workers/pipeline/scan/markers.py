@@ -26,6 +26,7 @@ from workers.pipeline.errors import ReconstructionError, ShapeError
 from workers.pipeline.geometry import Mat4, as_points, transform_points
 from workers.pipeline.reconstruct.markers import MarkerReference, detect_markers
 from workers.pipeline.scan.options import ScanOptions
+from workers.pipeline.seeded import seeded_open3d
 
 FloatArray = NDArray[np.float64]
 ColorArray = NDArray[np.uint8]
@@ -81,34 +82,36 @@ class _Plane:
 
 def _planes(points: FloatArray, options: ScanOptions) -> list[_Plane]:
     """The ``max_planes`` largest planes, each refit to the full-density points near it."""
-    o3d.utility.random.seed(options.seed)
-    thin = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    thin = thin.voxel_down_sample(options.plane_voxel_m)
-    left = np.asarray(thin.points)
-    out: list[_Plane] = []
-    for _ in range(options.max_planes):
-        if len(left) < options.plane_min_points:
-            break
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(left))
-        model, inliers = cloud.segment_plane(options.plane_distance_m, 3, options.plane_iterations)
-        if len(inliers) < options.plane_min_points:
-            break
-        left = np.delete(left, inliers, axis=0)
-        normal = np.asarray(model[:3], np.float64)
-        offset = float(model[3]) / float(np.linalg.norm(normal))
-        normal /= np.linalg.norm(normal)
-        near = np.flatnonzero(np.abs(points @ normal + offset) < options.plane_distance_m)
-        if len(near) < 3:
-            continue
-        centre = points[near].mean(axis=0)
-        _, _, vt = np.linalg.svd(points[near] - centre, full_matrices=False)
-        normal = vt[2]
-        near = near[np.abs((points[near] - centre) @ normal) < options.plane_distance_m / 2]
-        if len(near) < options.plane_min_points:
-            continue
-        u = vt[0] / np.linalg.norm(vt[0])
-        v = np.cross(normal, u)
-        out.append(_Plane(centre, u, v, near))
+    with seeded_open3d(options.seed):  # one draw sequence for all the planes
+        thin = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        thin = thin.voxel_down_sample(options.plane_voxel_m)
+        left = np.asarray(thin.points)
+        out: list[_Plane] = []
+        for _ in range(options.max_planes):
+            if len(left) < options.plane_min_points:
+                break
+            cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(left))
+            model, inliers = cloud.segment_plane(
+                options.plane_distance_m, 3, options.plane_iterations
+            )
+            if len(inliers) < options.plane_min_points:
+                break
+            left = np.delete(left, inliers, axis=0)
+            normal = np.asarray(model[:3], np.float64)
+            offset = float(model[3]) / float(np.linalg.norm(normal))
+            normal /= np.linalg.norm(normal)
+            near = np.flatnonzero(np.abs(points @ normal + offset) < options.plane_distance_m)
+            if len(near) < 3:
+                continue
+            centre = points[near].mean(axis=0)
+            _, _, vt = np.linalg.svd(points[near] - centre, full_matrices=False)
+            normal = vt[2]
+            near = near[np.abs((points[near] - centre) @ normal) < options.plane_distance_m / 2]
+            if len(near) < options.plane_min_points:
+                continue
+            u = vt[0] / np.linalg.norm(vt[0])
+            v = np.cross(normal, u)
+            out.append(_Plane(centre, u, v, near))
     return out
 
 

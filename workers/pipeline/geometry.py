@@ -193,3 +193,13 @@ def triangulate_dlt(projections: ArrayLike, pixels: ArrayLike) -> NDArray[np.flo
     _, _, vt = np.linalg.svd(rows)
     h = vt[-1]
     return np.asarray(h[:3] / h[3], dtype=np.float64)
+
+
+def rounded_rigid(a_from_b: Mat4, decimals: int) -> Mat4:
+    """``a_from_b`` rounded to ``decimals`` and made a rotation again (Gram-Schmidt in
+    element-wise arithmetic, so that equal inputs give bit-identical outputs)."""
+    r = np.round(a_from_b[:3, :3], decimals)
+    x = r[:, 0] / np.sqrt((r[:, 0] ** 2).sum())
+    y = r[:, 1] - (x * r[:, 1]).sum() * x
+    y = y / np.sqrt((y**2).sum())
+    return make_rigid(np.column_stack([x, y, np.cross(x, y)]), np.round(a_from_b[:3, 3], decimals))

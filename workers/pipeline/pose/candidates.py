@@ -21,16 +21,18 @@ from numpy.typing import NDArray
 
 from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import RegistrationError
-from workers.pipeline.geometry import Mat4, Points, invert_rigid, make_rigid, transform_points
+from workers.pipeline.geometry import (
+    Mat4,
+    Points,
+    invert_rigid,
+    make_rigid,
+    rounded_rigid,
+    transform_points,
+)
 from workers.pipeline.model import PreparedModel, make_cloud
 from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
 from workers.pipeline.pose.crop import PoseInputs, SceneRegion
-from workers.pipeline.pose.fit import (
-    exclusion_factor,
-    icp_point_to_plane,
-    rounded_rigid,
-    truncated_score,
-)
+from workers.pipeline.pose.fit import exclusion_factor, icp_point_to_plane, truncated_score
 from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.result import Trial
 from workers.pipeline.seeded import seeded_open3d
@@ -101,7 +103,7 @@ class CandidatePool:
             m.down_points, m.down_normals, region.target_fine, t, scales[1] * v, 10
         )
         # rounded to 1e-9 (far below the accuracy): starts that ICP takes to the same pose
-        # up to ~1e-15 (Open3D's RANSAC may return any of tied hypotheses) go on as one
+        # up to ~1e-15 (its threads sum in any order) go on as one
         t = rounded_rigid(t, 9)
         pts = transform_points(t, m.down_points)
         tau = o.score_voxels * v

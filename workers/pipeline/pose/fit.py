@@ -17,7 +17,6 @@ from workers.pipeline.compare.visibility import DepthMap, depth_votes
 from workers.pipeline.geometry import (
     Mat4,
     Points,
-    make_rigid,
     perpendicular_pair,
     rotation_from_rotvec,
     transform_points,
@@ -213,16 +212,6 @@ def truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     d, _ = tree.query(points, distance_upper_bound=tau)
     d = np.where(np.isfinite(d), d, tau)
     return float(np.mean(np.clip(1.0 - (d / tau) ** 2, 0.0, None)))
-
-
-def rounded_rigid(a_from_b: Mat4, decimals: int) -> Mat4:
-    """``a_from_b`` rounded to ``decimals`` and made a rotation again (Gram-Schmidt in
-    element-wise arithmetic, so that equal inputs give bit-identical outputs)."""
-    r = np.round(a_from_b[:3, :3], decimals)
-    x = r[:, 0] / np.sqrt((r[:, 0] ** 2).sum())
-    y = r[:, 1] - (x * r[:, 1]).sum() * x
-    y = y / np.sqrt((y**2).sum())
-    return make_rigid(np.column_stack([x, y, np.cross(x, y)]), np.round(a_from_b[:3, 3], decimals))
 
 
 def exclusion_factor(

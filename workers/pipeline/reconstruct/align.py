@@ -12,7 +12,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from workers.pipeline.geometry import Mat4, as_points, rotation_angle_deg
+from workers.pipeline.geometry import Mat4, as_points, rotation_angle_deg, rounded_rigid
 from workers.pipeline.reconstruct.fusion import to_o3d, voxel_average
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
@@ -85,7 +85,9 @@ def refine_alignment(
             est,
             o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=30),
         )
-        transform = np.asarray(res.transformation, dtype=np.float64)
+        # rounded to 1e-9 (far below the accuracy): Open3D's threads sum in any order, and
+        # the last bits would make every run's cloud another
+        transform = rounded_rigid(np.asarray(res.transformation, dtype=np.float64), 9)
     after = o3d.pipelines.registration.evaluate_registration(src, dst, last, transform)
     dt = float(np.linalg.norm(transform[:3, 3]))
     dr = rotation_angle_deg(transform[:3, :3])

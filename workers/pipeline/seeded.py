@@ -8,8 +8,9 @@ from contextlib import contextmanager
 
 import open3d as o3d
 
-#: held while Open3D is limited to one thread (the limit is process-wide)
-_ONE_THREAD = threading.Lock()
+#: held while Open3D is limited to one thread (the limit is process-wide; a nested block
+#: in the same thread enters again)
+_ONE_THREAD = threading.RLock()
 
 
 @contextmanager

@@ -17,9 +17,9 @@ module each:
 5. :mod:`~workers.pipeline.pose.canonical`: one canonical pose among a symmetric object's
    equivalents.
 
-Seeded by ``PoseOptions.seed`` and repeatable: the same inputs give the same pose (the
-feature RANSAC runs on one Open3D thread). Raises RegistrationError when no candidate is
-plausible, InputError/ShapeError for unusable inputs.
+Seeded by ``PoseOptions.seed`` and repeatable: on one machine the same inputs give the
+same pose (the feature RANSAC runs on one Open3D thread). Raises RegistrationError when
+no candidate is plausible, InputError/ShapeError for unusable inputs.
 """
 
 from __future__ import annotations

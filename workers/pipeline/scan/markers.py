@@ -82,11 +82,11 @@ class _Plane:
 
 def _planes(points: FloatArray, options: ScanOptions) -> list[_Plane]:
     """The ``max_planes`` largest planes, each refit to the full-density points near it."""
+    thin = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    thin = thin.voxel_down_sample(options.plane_voxel_m)
+    left = np.asarray(thin.points)
+    out: list[_Plane] = []
     with seeded_open3d(options.seed):  # one draw sequence for all the planes
-        thin = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-        thin = thin.voxel_down_sample(options.plane_voxel_m)
-        left = np.asarray(thin.points)
-        out: list[_Plane] = []
         for _ in range(options.max_planes):
             if len(left) < options.plane_min_points:
                 break

@@ -276,10 +276,16 @@ def test_feature_ransac_repeats_its_seed_on_one_thread(shared_data: Path) -> Non
         for seed in range(5):
             with seeded_open3d(1000 + seed):
                 res = reg.registration_ransac_based_on_feature_matching(
-                    scene, model, *features, False, 1.5 * v,
-                    reg.TransformationEstimationPointToPoint(False), 3, checkers,
+                    scene,
+                    model,
+                    *features,
+                    False,
+                    1.5 * v,
+                    reg.TransformationEstimationPointToPoint(False),
+                    3,
+                    checkers,
                     reg.RANSACConvergenceCriteria(20000, 0.999),
-                )  # fmt: skip
+                )
             out.append(np.asarray(res.transformation))
         return out
 

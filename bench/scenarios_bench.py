@@ -148,7 +148,6 @@ QUALITY_FIGURES = (
     "runner_up_ratio",
     "rotation_slack_deg",
     "final_turn_deg",
-    "visible_fitness",
     "reprojection",
 )
 

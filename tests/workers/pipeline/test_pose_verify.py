@@ -10,24 +10,15 @@ per cent), a pose 20 cm to the side misses them (IoU 0).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from types import SimpleNamespace
-from typing import Any
 
 import numpy as np
 import pytest
 
-from workers.pipeline.compare.data import Camera, CaptureData
-from workers.pipeline.compare.visibility import DepthMap, render_depth
+from workers.pipeline.compare.data import Camera
 from workers.pipeline.geometry import make_rigid, transform_points
-from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, PoseResult, Trial, posing
-from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, Trial
 from workers.pipeline.pose.refine import Refinement
-from workers.pipeline.pose.verify import (
-    ReprojectionOptions,
-    reprojection_check,
-    verify_fit,
-    visible_fitness,
-)
+from workers.pipeline.pose.verify import ReprojectionOptions, reprojection_check, verify_fit
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 CLASS_ID = 2
@@ -177,88 +168,3 @@ def test_verify_fit_names_each_failed_figure() -> None:
     assert verify_fit(refinement(0.0, 0.0), model, None, v, lenient).rejections == (
         "fitness 0.00 < 0.00",
     )
-
-
-def box_normals(points: np.ndarray) -> np.ndarray:
-    """(n, 3) unit outward normals of :func:`box_model` points (the face each lies on)."""
-    half = np.array([0.1, 0.05, 0.05])
-    rows = np.arange(len(points))
-    axis = np.argmax(np.abs(points) / half, axis=1)
-    normals = np.zeros_like(points)
-    normals[rows, axis] = np.sign(points[rows, axis])
-    return normals
-
-
-QUARTER_ABOUT_Y = make_rigid(
-    np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]), (0.0, 0.0, 0.0)
-)
-
-
-def seen_face(scene: BoxScene) -> tuple[np.ndarray, np.ndarray, list[DepthMap]]:
-    """The box's normals, the scan (the face the two cameras see at its true pose, z =
-    0.95 m) and the cameras' z-buffers of that scan."""
-    normals = box_normals(scene.model)
-    scan = transform_points(scene.env_from_object, scene.model[normals[:, 2] < -0.5])
-    maps = [render_depth(c, scan.astype(np.float32)) for c in scene.cameras]
-    return normals, scan, maps
-
-
-def test_visible_fitness_is_the_share_of_the_seen_surface_the_scan_holds(scene: BoxScene) -> None:
-    """The right pose's seen surface lies on the scan; the box turned a quarter about y
-    stands 5 cm proud of it (its face towards the cameras at z = 0.9 m has no scan point
-    near); the box 30 cm further back hides behind the scan (too few points seen); no
-    cameras, no figure."""
-    normals, scan, maps = seen_face(scene)
-
-    def figure(env_from_object: np.ndarray, depth_maps: list[DepthMap]) -> float | None:
-        return visible_fitness(scene.model, normals, env_from_object, scan, depth_maps, 0.0025)
-
-    assert figure(scene.env_from_object, maps) == 1.0
-    assert figure(scene.env_from_object @ QUARTER_ABOUT_Y, maps) == 0.0
-    assert figure(make_rigid(np.eye(3), (0.0, 0.0, 1.3)), maps) is None
-    assert figure(scene.env_from_object, []) is None
-
-
-def test_pose_change_rejects_a_pose_the_cameras_would_have_seen_elsewhere(
-    scene: BoxScene, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """The pose step's pose, checked against the after capture: the right pose passes with
-    its visible fitness reported; the quarter-turned one is not verified, and says why."""
-    normals, scan, maps = seen_face(scene)
-    after = CaptureData(scan, tuple(scene.cameras), scene.detections)
-    model: Any = SimpleNamespace(points=scene.model, normals=normals, centre_object=np.zeros(3))
-    change: Any = SimpleNamespace(
-        cluster=SimpleNamespace(points_env=scan), previous_env_from_object=None
-    )
-    for env_from_object, verified in (
-        (scene.env_from_object, True),
-        (scene.env_from_object @ QUARTER_ABOUT_Y, False),
-    ):
-        result = PoseResult(
-            env_from_object=env_from_object,
-            fitness=0.5,
-            inlier_rmse_m=0.001,
-            inlier_distance_m=0.0025,
-            score=1.0,
-            runner_up_score=0.0,
-            cluster_coverage=1.0,
-            verified=True,
-            rejections=(),
-            ambiguous=False,
-            equivalent_poses=(),
-            symmetry_axis_env=None,
-            symmetry_origin_env=None,
-            chosen_by="unique",
-            source="test",
-            trials=(),
-            n_scene_points=len(scan),
-        )
-        monkeypatch.setattr(posing, "estimate_pose", lambda *a, _r=result, **k: _r)
-        scene_cloud = SceneCloud.create(scan)
-        options = POSE_PRESETS["default"]
-        record = posing.pose_change(change, model, scene_cloud, after, CLASS_ID, maps, options)
-        quality = record["pose_quality"]
-        assert quality["verified"] is verified, quality
-        assert quality["visible_fitness"] == (1.0 if verified else 0.0)
-        if not verified:
-            assert any(r.startswith("visible fitness 0.00 < 0.20") for r in quality["reasons"])

@@ -63,9 +63,6 @@ class PoseOptions:
     max_inlier_distance_m: float = 0.01
     # least share of model points near the scene for ``verified``; one view sees 30-60 %
     min_fitness: float = 0.25
-    # least share of the posed model's camera-facing, unhidden surface with a scan point within
-    # the inlier distance (visible_fitness), for ``verified``; needs the capture's depth maps
-    min_visible_fitness: float = 0.2
     # least tolerance of cluster coverage, voxels (3σ of the cluster's scatter, clipped)
     coverage_voxels: float = 0.5
     # largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)

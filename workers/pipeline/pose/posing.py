@@ -27,12 +27,7 @@ from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
-from workers.pipeline.pose.verify import (
-    RUNNER_UP_REASON,
-    ReprojectionCheck,
-    reprojection_check,
-    visible_fitness,
-)
+from workers.pipeline.pose.verify import RUNNER_UP_REASON, ReprojectionCheck, reprojection_check
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
@@ -143,10 +138,11 @@ def pose_change(
                 "mean_iou": round(check.mean_iou, 4),
                 "best_rival_iou": round(second_iou, 4),
             }
-    quality["visible_fitness"], unseen = _visible_check(
-        model, chosen, scene, depth_maps, pose.inlier_distance_m, options
-    )
-    reasons += unseen + check.rejections()
+    if not check.passed:
+        reasons.append(
+            f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
+            "with the detector's boxes is too low"
+        )
     quality.update(verified=not reasons, reasons=reasons, reprojection=check.to_json())
     centre = transform_points(chosen, model.centre_object[None, :])[0]
     return {
@@ -154,29 +150,6 @@ def pose_change(
         "pose_quality": quality,
         "centroid_env": centre.tolist(),
     }
-
-
-def _visible_check(
-    model: PreparedModel,
-    env_from_object: Mat4,
-    scene: SceneCloud,
-    depth_maps: Sequence[DepthMap] | None,
-    inlier_distance_m: float,
-    options: PoseOptions,
-) -> tuple[float | None, list[str]]:
-    """:func:`~workers.pipeline.pose.verify.visible_fitness` of a pose (None without the
-    capture's depth maps) and the rejection it earns below ``min_visible_fitness``."""
-    if not depth_maps:
-        return None, []
-    seen_fit = visible_fitness(
-        model.points, model.normals, env_from_object, scene.points, depth_maps, inlier_distance_m
-    )
-    if seen_fit is None or seen_fit >= options.min_visible_fitness:
-        return seen_fit, []
-    return seen_fit, [
-        f"visible fitness {seen_fit:.2f} < {options.min_visible_fitness:.2f}: the scan lacks "
-        "what the cameras would have seen of the posed model"
-    ]
 
 
 def _fit_figures(

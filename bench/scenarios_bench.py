@@ -148,6 +148,9 @@ QUALITY_FIGURES = (
     "runner_up_ratio",
     "rotation_slack_deg",
     "final_turn_deg",
+    "visible_fitness",
+    "settled_by_visibility",
+    "settled_by_reprojection",
     "reprojection",
 )
 

@@ -84,8 +84,8 @@ def _common_defs() -> dict[str, Any]:
             pose_quality={
                 "type": ["object", "null"],
                 "description": "fitness, inlier_rmse, cluster_coverage, runner_up_ratio, "
-                "rotation_slack_deg, final_turn_deg, verified, reasons, ambiguous, "
-                "equivalent_poses",
+                "rotation_slack_deg, final_turn_deg, visible_fitness, chosen_by, verified, "
+                "reasons, ambiguous, equivalent_poses",
             },
         ),
     }

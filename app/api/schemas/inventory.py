@@ -24,8 +24,8 @@ class SnapshotObjectRead(BaseModel):
     )
     pose_quality: dict[str, Any] | None = Field(
         description="the pose stage's figures: fitness, inlier_rmse (m), cluster_coverage, "
-        "runner_up_ratio, rotation_slack_deg, final_turn_deg, verified, reasons, "
-        "reprojection {mean_iou, views, passed}"
+        "runner_up_ratio, rotation_slack_deg, final_turn_deg, visible_fitness, chosen_by, "
+        "verified, reasons, reprojection {mean_iou, views, passed}"
     )
     identification: dict[str, Any] = Field(
         description="the compare stage's identification figures of its class: metric "

@@ -10,15 +10,26 @@ per cent), a pose 20 cm to the side misses them (IoU 0).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
 
-from workers.pipeline.compare.data import Camera
+from workers.pipeline.compare.data import Camera, CaptureData
+from workers.pipeline.compare.visibility import DepthMap, render_depth
 from workers.pipeline.geometry import make_rigid, transform_points
-from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, Trial
+from workers.pipeline.model.symmetry_group import SymmetrySpec
+from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, PoseResult, Trial, posing
+from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.refine import Refinement
-from workers.pipeline.pose.verify import ReprojectionOptions, reprojection_check, verify_fit
+from workers.pipeline.pose.result import Alternative
+from workers.pipeline.pose.verify import (
+    ReprojectionOptions,
+    reprojection_check,
+    verify_fit,
+    visible_fitness,
+)
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 CLASS_ID = 2
@@ -168,3 +179,112 @@ def test_verify_fit_names_each_failed_figure() -> None:
     assert verify_fit(refinement(0.0, 0.0), model, None, v, lenient).rejections == (
         "fitness 0.00 < 0.00",
     )
+
+
+def box_normals(points: np.ndarray) -> np.ndarray:
+    """(n, 3) unit outward normals of :func:`box_model` points (the face each lies on)."""
+    half = np.array([0.1, 0.05, 0.05])
+    rows = np.arange(len(points))
+    axis = np.argmax(np.abs(points) / half, axis=1)
+    normals = np.zeros_like(points)
+    normals[rows, axis] = np.sign(points[rows, axis])
+    return normals
+
+
+QUARTER_ABOUT_Y = make_rigid(
+    np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]]), (0.0, 0.0, 0.0)
+)
+
+
+def seen_face(scene: BoxScene) -> tuple[np.ndarray, np.ndarray, list[DepthMap]]:
+    """The box's normals, the scan (the face the two cameras see at its true pose, z =
+    0.95 m) and the cameras' z-buffers of that scan."""
+    normals = box_normals(scene.model)
+    scan = transform_points(scene.env_from_object, scene.model[normals[:, 2] < -0.5])
+    maps = [render_depth(c, scan.astype(np.float32)) for c in scene.cameras]
+    return normals, scan, maps
+
+
+def test_visible_fitness_is_the_share_of_the_seen_surface_the_scan_holds(scene: BoxScene) -> None:
+    """The right pose's seen surface lies on the scan; the box turned a quarter about y
+    stands 5 cm proud of it (its face towards the cameras at z = 0.9 m has no scan point
+    near); the box 30 cm further back hides behind the scan (too few points seen); no
+    cameras, no figure."""
+    normals, scan, maps = seen_face(scene)
+
+    def figure(env_from_object: np.ndarray, depth_maps: list[DepthMap]) -> float | None:
+        return visible_fitness(scene.model, normals, env_from_object, scan, depth_maps, 0.0025)
+
+    assert figure(scene.env_from_object, maps) == 1.0
+    assert figure(scene.env_from_object @ QUARTER_ABOUT_Y, maps) == 0.0
+    assert figure(make_rigid(np.eye(3), (0.0, 0.0, 1.3)), maps) is None
+    assert figure(scene.env_from_object, []) is None
+
+
+def near_tie(chosen: np.ndarray, rival: np.ndarray, n_points: int) -> PoseResult:
+    """The pose step's result: ``chosen``, with the distinct ``rival`` scoring 0.95 of it."""
+    return PoseResult(
+        env_from_object=chosen,
+        fitness=0.5,
+        inlier_rmse_m=0.001,
+        inlier_distance_m=0.0025,
+        score=1.0,
+        runner_up_score=0.95,
+        cluster_coverage=1.0,
+        verified=False,
+        rejections=(f"{RUNNER_UP_REASON} 0.95 of the best (> 0.85)",),
+        ambiguous=False,
+        equivalent_poses=(),
+        symmetry_axis_env=None,
+        symmetry_origin_env=None,
+        chosen_by="unique",
+        source="test",
+        trials=(),
+        n_scene_points=n_points,
+        alternatives=(Alternative(0.95, rival),),
+    )
+
+
+def test_what_the_cameras_saw_settles_a_near_tie_for_the_pose_steps_choice(
+    scene: BoxScene, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A near-tie of the true pose and the box turned a quarter about y, both standing the
+    same way up. When the pose step chose the true pose, its seen surface lies on the scan
+    (visible fitness 1) and the turned one's does not (0): the tie is settled by
+    visibility and the pose verified. When it chose the turned pose, visibility does not
+    pick another; the detector's boxes do (the true pose re-projects onto them). Without
+    the capture's depth maps there is no visible fitness and the boxes decide."""
+    normals, scan, maps = seen_face(scene)
+    after = CaptureData(scan, tuple(scene.cameras), scene.detections)
+    model: Any = SimpleNamespace(
+        points=scene.model,
+        normals=normals,
+        centre_object=np.zeros(3),
+        up_object=np.array([-1.0, 0.0, 1.0]) / np.sqrt(2.0),  # upright in both poses
+        symmetry=SymmetrySpec(),
+        diameter_m=0.245,
+    )
+    change: Any = SimpleNamespace(
+        cluster=SimpleNamespace(points_env=scan), previous_env_from_object=None
+    )
+    true, turned = scene.env_from_object, scene.env_from_object @ QUARTER_ABOUT_Y
+    options = POSE_PRESETS["default"]
+
+    def posed(chosen: np.ndarray, rival: np.ndarray, depth_maps: Any) -> dict[str, Any]:
+        monkeypatch.setattr(posing, "estimate_pose", lambda *a, **k: near_tie(chosen, rival, 9))
+        cloud = SceneCloud.create(scan)
+        return posing.pose_change(change, model, cloud, after, CLASS_ID, depth_maps, options)
+
+    kept = posed(true, turned, maps)
+    quality = kept["pose_quality"]
+    np.testing.assert_allclose(kept["pose"], true)
+    assert quality["settled_by_visibility"] == {"visible_fitness": 1.0, "best_rival": 0.0}
+    assert quality["chosen_by"] == "unique" and quality["visible_fitness"] == 1.0
+    assert quality["verified"] is True and quality["reasons"] == [], quality
+    for depth_maps in (maps, None):
+        switched = posed(turned, true, depth_maps)
+        quality = switched["pose_quality"]
+        np.testing.assert_allclose(switched["pose"], true)
+        assert "settled_by_visibility" not in quality and quality["chosen_by"] == "reprojection"
+        assert quality["settled_by_reprojection"]["mean_iou"] > 0.9, quality
+        assert quality["visible_fitness"] == (1.0 if depth_maps else None)

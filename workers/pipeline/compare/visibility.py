@@ -241,6 +241,28 @@ def visible_points(
     return uv, vis
 
 
+def seen_by_any(
+    points_env: FloatArray,
+    normals_env: FloatArray,
+    depth_maps: Sequence[DepthMap],
+    tol_m: float = 0.005,
+    tol_px: float = 2.0,
+) -> BoolArray:
+    """(N,) mask of the (N, 3) surface points (unit outward ``normals_env`` (N, 3)) that
+    some camera of ``depth_maps`` sees: in its image, facing it and not behind its
+    z-buffer by more than the tolerance."""
+    seen = np.zeros(len(points_env), dtype=bool)
+    for dm in depth_maps:
+        m = dm.camera.cam_from_env
+        centre = -m[:3, :3].T @ m[:3, 3]
+        uv, z, inside = project_in_image(dm.camera, points_env)
+        inside &= np.einsum("ij,ij->i", centre - points_env, normals_env) > 0.0
+        zbuf = _lookup(dm, uv, inside)
+        with np.errstate(invalid="ignore"):
+            seen |= inside & (z <= zbuf + tolerance(dm, z, tol_m, tol_px))
+    return seen
+
+
 def depth_votes(
     points_env: FloatArray,
     depth_maps: Sequence[DepthMap],

@@ -9,6 +9,7 @@ storage here.
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -27,12 +28,20 @@ from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
-from workers.pipeline.pose.verify import RUNNER_UP_REASON, ReprojectionCheck, reprojection_check
+from workers.pipeline.pose.verify import (
+    RUNNER_UP_REASON,
+    ReprojectionCheck,
+    reprojection_check,
+    visible_fitness,
+)
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
 #: any distinct near-tie before the tie counts as settled
 RIVAL_IOU_MARGIN = 0.1
+#: how much larger the pose step's choice's visible fitness must be than any distinct
+#: near-tie's before the tie counts as settled by what the cameras saw
+RIVAL_SEEN_MARGIN = 0.04
 #: the environment's up: z (the markers' floor normal); the pose step and the box
 #: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
@@ -104,6 +113,9 @@ def pose_change(
             model.points, env_from_object, class_id, after.cameras, after.detections, depth_maps
         )
 
+    def seen_of(env_from_object: Any) -> float | None:
+        return _visible_fitness(model, env_from_object, scene, depth_maps, pose.inlier_distance_m)
+
     chosen = pose.env_from_object
     check = check_of(chosen)
     quality = pose.quality_json()
@@ -111,38 +123,35 @@ def pose_change(
     reasons = list(pose.rejections)
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
         # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
-        # bracket turned end for end): the detector's boxes choose among the near-ties that
-        # stand the same way up (a box cannot tell an object from itself upside down; the
-        # pose step chose that), and settle the tie when the choice explains the boxes
+        # bracket turned end for end, a hammer on either face). What the cameras saw of each
+        # pose (visible fitness) settles the tie when it clearly prefers the pose step's
+        # choice; else the detector's boxes choose among the near-ties that stand the same
+        # way up (the pose step chose that), settling the tie when the choice re-projects
         # clearly better than every near-tie.
-        up = upright(chosen, model.up_object, UP_ENV)
-        checked = [
-            (check, chosen),
-            *((check_of(alt), alt) for alt in _rivals(pose, model, options)),
-        ]
-        best_check, best_pose = max(
-            (pair for pair in checked if upright(pair[1], model.up_object, UP_ENV) == up),
-            key=lambda pair: pair[0].mean_iou,
-        )
-        second_iou = max((c.mean_iou for c, p in checked if p is not best_pose), default=0.0)
-        if best_pose is not chosen and not model.symmetry.is_symmetric:
-            quality.update(_fit_figures(model, scene, best_pose, pose.inlier_distance_m))
-            # the pose step measured these of its own choice only
-            quality.update(dict.fromkeys(CHOICE_FIGURES))
-            quality["chosen_by"] = "reprojection"
-            quality["switched_from_iou"] = round(check.mean_iou, 4)
-            chosen, check = best_pose, best_check
-        if check.mean_iou >= second_iou + RIVAL_IOU_MARGIN:
+        candidates = [chosen, *_rivals(pose, model, options)]
+        checks = [check, *(check_of(alt) for alt in candidates[1:])]
+        by_sight = _tiebreak(candidates, [seen_of(c) for c in candidates], model)
+        by_boxes = _tiebreak(candidates, [c.mean_iou for c in checks], model)
+        if by_sight.index == 0 and by_sight.margin >= RIVAL_SEEN_MARGIN:
+            quality["settled_by_visibility"] = by_sight.to_json()
             reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
-            quality["settled_by_reprojection"] = {
-                "mean_iou": round(check.mean_iou, 4),
-                "best_rival_iou": round(second_iou, 4),
-            }
-    if not check.passed:
-        reasons.append(
-            f"re-projection: mean IoU {check.mean_iou:.2f} over {check.views} views "
-            "with the detector's boxes is too low"
-        )
+        else:
+            if by_boxes.index != 0 and not model.symmetry.is_symmetric:
+                switched = candidates[by_boxes.index]
+                quality.update(_fit_figures(model, scene, switched, pose.inlier_distance_m))
+                # the pose step measured these of its own choice only
+                quality.update(dict.fromkeys(CHOICE_FIGURES))
+                quality["chosen_by"] = "reprojection"
+                quality["switched_from_iou"] = round(check.mean_iou, 4)
+                chosen, check = switched, checks[by_boxes.index]
+            if by_boxes.margin >= RIVAL_IOU_MARGIN and chosen is candidates[by_boxes.index]:
+                reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
+                quality["settled_by_reprojection"] = {
+                    "mean_iou": round(by_boxes.value, 4),
+                    "best_rival_iou": round(by_boxes.rival, 4),
+                }
+    quality["visible_fitness"] = seen_of(chosen)
+    reasons += check.rejections()
     quality.update(verified=not reasons, reasons=reasons, reprojection=check.to_json())
     centre = transform_points(chosen, model.centre_object[None, :])[0]
     return {
@@ -150,6 +159,54 @@ def pose_change(
         "pose_quality": quality,
         "centroid_env": centre.tolist(),
     }
+
+
+@dataclass(frozen=True)
+class _Tiebreak:
+    """The near-tie a figure prefers: ``index`` into the candidates (0: the pose step's
+    choice) of the best ``value`` among those standing the chosen pose's way up, and the
+    best ``rival`` value of every other candidate."""
+
+    index: int
+    value: float
+    rival: float
+
+    @property
+    def margin(self) -> float:
+        """How much better the preferred candidate is than every other."""
+        return self.value - self.rival
+
+    def to_json(self) -> dict[str, float]:
+        return {"visible_fitness": round(self.value, 4), "best_rival": round(self.rival, 4)}
+
+
+def _tiebreak(
+    candidates: Sequence[Mat4], values: Sequence[float | None], model: PreparedModel
+) -> _Tiebreak:
+    """:class:`_Tiebreak` of the 4×4 ``candidates`` (the chosen pose first) by ``values``
+    (higher is better; None, not measured, ranks last)."""
+    score = [-1.0 if v is None else float(v) for v in values]
+    up = upright(candidates[0], model.up_object, UP_ENV)
+    same_way = [i for i, c in enumerate(candidates) if upright(c, model.up_object, UP_ENV) == up]
+    best = max(same_way, key=score.__getitem__)
+    rival = max((v for i, v in enumerate(score) if i != best), default=0.0)
+    return _Tiebreak(best, score[best], rival)
+
+
+def _visible_fitness(
+    model: PreparedModel,
+    env_from_object: Mat4,
+    scene: SceneCloud,
+    depth_maps: Sequence[DepthMap] | None,
+    inlier_distance_m: float,
+) -> float | None:
+    """:func:`~workers.pipeline.pose.verify.visible_fitness` of a pose; None without the
+    capture's depth maps."""
+    if not depth_maps:
+        return None
+    return visible_fitness(
+        model.points, model.normals, env_from_object, scene.points, depth_maps, inlier_distance_m
+    )
 
 
 def _fit_figures(

@@ -7,6 +7,10 @@ of them within the :class:`~workers.pipeline.pose.options.PoseOptions` threshold
 RMSE is reported, not judged: bounded by the inlier distance, it measures the cloud's noise
 against the object's voxel, not the pose.
 
+Against what the cameras saw (:func:`visible_fitness`): the share of the posed model's
+surface in the cameras' view that the scan holds; a pose turned over or beside the object
+puts surface where the cameras saw none.
+
 By re-projection (:func:`reprojection_check`): the posed model is projected into every image of
 the capture that saw it, keeping the model points the capture's own depth says are visible,
 and the box of those pixels is compared with the detector's boxes of the object's class: a
@@ -24,8 +28,13 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.data import Camera, FloatArray
 from workers.pipeline.compare.identify import iou_matrix, yolo_to_boxes
-from workers.pipeline.compare.visibility import DepthMap, box_from_pixels, visible_points
-from workers.pipeline.geometry import Points, as_mat4, as_points, transform_points
+from workers.pipeline.compare.visibility import (
+    DepthMap,
+    box_from_pixels,
+    seen_by_any,
+    visible_points,
+)
+from workers.pipeline.geometry import Mat4, Points, as_mat4, as_points, transform_points
 from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.refine import Refinement
 
@@ -103,6 +112,39 @@ def verify_fit(
     return FitVerification(coverage, tuple(rejections))
 
 
+#: fewer model points than this in view of the cameras: no visible fitness
+MIN_VISIBLE_POINTS = 50
+
+
+def visible_fitness(
+    model_points: Points,
+    model_normals: Points,
+    env_from_object: Mat4,
+    scene_points: Points,
+    depth_maps: Sequence[DepthMap],
+    inlier_distance_m: float,
+) -> float | None:
+    """Share of the posed (N, 3) model points (object frame, unit outward ``model_normals``)
+    that the cameras see (facing one, in its image, not hidden behind the capture's own
+    depth, :func:`~workers.pipeline.compare.visibility.seen_by_any`) with a (M, 3)
+    ``scene_points`` point within ``inlier_distance_m``: what the cameras should have
+    reconstructed of the object, if it stood there. A pose turned over or beside the
+    object puts surface where the scan has none. None with fewer than
+    :data:`MIN_VISIBLE_POINTS` such points (no cameras, or the object out of view)."""
+    rot = env_from_object[:3, :3]
+    posed = transform_points(env_from_object, model_points)
+    seen = seen_by_any(posed, model_normals @ rot.T, depth_maps)
+    if int(seen.sum()) < MIN_VISIBLE_POINTS:
+        return None
+    lo = posed.min(axis=0) - inlier_distance_m
+    hi = posed.max(axis=0) + inlier_distance_m
+    near = scene_points[np.all((scene_points >= lo) & (scene_points <= hi), axis=1)]
+    if len(near) == 0:
+        return 0.0
+    d, _ = cKDTree(near).query(posed[seen], distance_upper_bound=inlier_distance_m)
+    return float(np.mean(np.isfinite(d)))
+
+
 @dataclass(frozen=True)
 class ReprojectionOptions:
     """Thresholds of the re-projection check: ``min_iou`` mean IoU over at least
@@ -126,6 +168,15 @@ class ReprojectionCheck:
     views: int
     visible_views: int
     passed: bool
+
+    def rejections(self) -> list[str]:
+        """Why the pose fails the check (empty when it passed)."""
+        if self.passed:
+            return []
+        return [
+            f"re-projection: mean IoU {self.mean_iou:.2f} over {self.views} views "
+            "with the detector's boxes is too low"
+        ]
 
     def to_json(self) -> dict[str, Any]:
         return {

@@ -133,7 +133,7 @@ def pose_change(
         by_sight = _tiebreak(candidates, [seen_of(c) for c in candidates], model)
         by_boxes = _tiebreak(candidates, [c.mean_iou for c in checks], model)
         if by_sight.index == 0 and by_sight.margin >= RIVAL_SEEN_MARGIN:
-            quality["settled_by_visibility"] = by_sight.to_json()
+            quality["settled_by_visibility"] = by_sight.to_json("visible_fitness")
             reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
         else:
             if by_boxes.index != 0 and not model.symmetry.is_symmetric:
@@ -176,8 +176,9 @@ class _Tiebreak:
         """How much better the preferred candidate is than every other."""
         return self.value - self.rival
 
-    def to_json(self) -> dict[str, float]:
-        return {"visible_fitness": round(self.value, 4), "best_rival": round(self.rival, 4)}
+    def to_json(self, figure: str) -> dict[str, float]:
+        """``{figure: value, "best_rival": rival}``, rounded."""
+        return {figure: round(self.value, 4), "best_rival": round(self.rival, 4)}
 
 
 def _tiebreak(

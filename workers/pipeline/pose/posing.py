@@ -13,7 +13,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.options import CompareOptions
@@ -32,6 +31,7 @@ from workers.pipeline.pose.verify import (
     RUNNER_UP_REASON,
     ReprojectionCheck,
     reprojection_check,
+    scene_distances,
     visible_fitness,
 )
 
@@ -113,8 +113,7 @@ def pose_change(
             model.points, env_from_object, class_id, after.cameras, after.detections, depth_maps
         )
 
-    def seen_of(env_from_object: Any) -> float | None:
-        return _visible_fitness(model, env_from_object, scene, depth_maps, pose.inlier_distance_m)
+    seen_of = _visible_fitness_of(model, scene, depth_maps, pose.inlier_distance_m)
 
     chosen = pose.env_from_object
     check = check_of(chosen)
@@ -194,20 +193,29 @@ def _tiebreak(
     return _Tiebreak(best, score[best], rival)
 
 
-def _visible_fitness(
+def _visible_fitness_of(
     model: PreparedModel,
-    env_from_object: Mat4,
     scene: SceneCloud,
     depth_maps: Sequence[DepthMap] | None,
     inlier_distance_m: float,
-) -> float | None:
-    """:func:`~workers.pipeline.pose.verify.visible_fitness` of a pose; None without the
-    capture's depth maps."""
-    if not depth_maps:
-        return None
-    return visible_fitness(
-        model.points, model.normals, env_from_object, scene.points, depth_maps, inlier_distance_m
-    )
+) -> Callable[[Mat4], float | None]:
+    """:func:`~workers.pipeline.pose.verify.visible_fitness` of a pose of ``model`` (None
+    without the capture's depth maps), computed once per pose (by identity)."""
+    memo: dict[int, float | None] = {}
+
+    def of(env_from_object: Mat4) -> float | None:
+        if id(env_from_object) not in memo:
+            memo[id(env_from_object)] = visible_fitness(
+                model.points,
+                model.normals,
+                env_from_object,
+                scene.points,
+                depth_maps or (),
+                inlier_distance_m,
+            )
+        return memo[id(env_from_object)]
+
+    return of
 
 
 def _fit_figures(
@@ -216,11 +224,7 @@ def _fit_figures(
     """``fitness`` (share of model points within ``inlier_distance_m`` of the scene) and
     ``inlier_rmse`` (metres) of a pose, as the pose step reports them."""
     posed = transform_points(env_from_object, model.points)
-    lo, hi = posed.min(axis=0) - inlier_distance_m, posed.max(axis=0) + inlier_distance_m
-    near = scene.points[np.all((scene.points >= lo) & (scene.points <= hi), axis=1)]
-    if len(near) == 0:
-        return {"fitness": 0.0, "inlier_rmse": 0.0}
-    d, _ = cKDTree(near).query(posed, distance_upper_bound=inlier_distance_m)
+    d = scene_distances(posed, scene.points, inlier_distance_m)
     inliers = d[np.isfinite(d)]
     rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else 0.0
     return {"fitness": float(len(inliers) / len(posed)), "inlier_rmse": rmse}

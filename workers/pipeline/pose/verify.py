@@ -116,6 +116,18 @@ def verify_fit(
 MIN_VISIBLE_POINTS = 50
 
 
+def scene_distances(points: Points, scene_points: Points, reach_m: float) -> FloatArray:
+    """(N,) distance (metres) from each of the (N, 3) points to the nearest of the (M, 3)
+    ``scene_points``; inf beyond ``reach_m`` (only the scene within the points' box grown
+    by ``reach_m`` is searched)."""
+    lo, hi = points.min(axis=0) - reach_m, points.max(axis=0) + reach_m
+    near = scene_points[np.all((scene_points >= lo) & (scene_points <= hi), axis=1)]
+    if len(near) == 0:
+        return np.full(len(points), np.inf)
+    d, _ = cKDTree(near).query(points, distance_upper_bound=reach_m)
+    return np.asarray(d, dtype=np.float64)
+
+
 def visible_fitness(
     model_points: Points,
     model_normals: Points,
@@ -136,12 +148,7 @@ def visible_fitness(
     seen = seen_by_any(posed, model_normals @ rot.T, depth_maps)
     if int(seen.sum()) < MIN_VISIBLE_POINTS:
         return None
-    lo = posed.min(axis=0) - inlier_distance_m
-    hi = posed.max(axis=0) + inlier_distance_m
-    near = scene_points[np.all((scene_points >= lo) & (scene_points <= hi), axis=1)]
-    if len(near) == 0:
-        return 0.0
-    d, _ = cKDTree(near).query(posed[seen], distance_upper_bound=inlier_distance_m)
+    d = scene_distances(posed[seen], scene_points, inlier_distance_m)
     return float(np.mean(np.isfinite(d)))
 
 

@@ -8,9 +8,10 @@ alternatives separate. The winner gets a last ICP on every model point and then 
 the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene
 to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
 lifted onto its support when it sank into it, and set flat on it when it touches it
-(within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified);
-that turn and the rotation the residual level hides
-(:func:`~workers.pipeline.pose.fit.rotation_slack_deg`) say how well the scan holds it.
+(within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified;
+the turn and shift across it refitted unless that lowers the fitness); that turn and the
+rotation the residual level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`)
+say how well the scan holds it.
 """
 
 from __future__ import annotations
@@ -185,7 +186,8 @@ class Refiner:
         so it would fall over: the scan, not the object, is tilted, as a hollow bowl's is;
         tilted further, something holds it). That face is turned flat about the object's
         centre, the turn about the plane's normal and the shift across it refitted by the
-        scan-to-model fit on the (M, 3) ``scene`` points, and the lowest point set on the
+        scan-to-model fit on the (M, 3) ``scene`` points (kept unless it lowers the fitness,
+        :meth:`evaluate`: then the pose set flat stays), and the lowest point set on the
         plane. Objects stand on their supports: the plane, fitted on thousands of floor
         points, holds the tilt and height better than the object's own few hundred.
         Otherwise ``pose`` unchanged. Also returns, degrees, how far the refit turned it
@@ -219,8 +221,22 @@ class Refiner:
             self.surface, scene, flat, reach_m, o.final_max_iterations, plane_normal=support[:3]
         )
         refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
-        rested[:3, 3] -= lowest_height(transform_points(rested, m.points), support) * support[:3]
-        return rested, refit_turn, tipped_deg
+        for p in (flat, rested):
+            p[:3, 3] -= lowest_height(transform_points(p, m.points), support) * support[:3]
+        # a refit that lowers the fitness slid off what the scan holds (a tall object's
+        # weak turn): the pose set flat stays
+        kept = rested if self.evaluate(rested)[0] >= self.evaluate(flat)[0] else flat
+        return kept, refit_turn, tipped_deg
+
+    def evaluate(self, env_from_object: Mat4) -> tuple[float, float]:
+        """(fitness, inlier RMSE in metres) of ``env_from_object``: the share of every model
+        point with a scene point within the inlier distance (``inlier_voxels``, at most
+        ``max_inlier_distance_m``), and those distances' RMS."""
+        o, v = self.ctx.options, self.ctx.model.voxel_m
+        dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
+        fine = self.ctx.region.fine
+        ev = REG.evaluate_registration(self.model_full, fine, dist_in, env_from_object)
+        return float(ev.fitness), float(ev.inlier_rmse)
 
     def _picks(self, distinct: list[Trial]) -> list[Trial]:
         """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best
@@ -297,15 +313,14 @@ class Refiner:
             ),
             0.0,
         )
-        dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
-        ev = REG.evaluate_registration(self.model_full, region.fine, dist_in, env_from_object)
+        fitness, rmse = self.evaluate(env_from_object)
         return Refinement(
             env_from_object=env_from_object,
             score=best.score,
             runner_up=runner_up,
-            fitness=float(ev.fitness),
-            inlier_rmse_m=float(ev.inlier_rmse),
-            inlier_distance_m=dist_in,
+            fitness=fitness,
+            inlier_rmse_m=rmse,
+            inlier_distance_m=min(o.inlier_voxels * v, o.max_inlier_distance_m),
             best=best.trial,
             rotation_slack_deg=slack,
             final_turn_deg=turn,

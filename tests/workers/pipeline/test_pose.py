@@ -808,8 +808,22 @@ def test_colour_reads_the_texture_through_the_shading(
     assert agreements[0] >= max(agreements[1:]) + 0.05
 
 
+DrillOnTable = tuple[PreparedModel, SceneCloud, np.ndarray, np.ndarray]
+
+
+@pytest.fixture
+def drill_on_table(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> DrillOnTable:
+    """The drill standing on a table seen from three sides: its model, the scene, the
+    drill's own scan points (env frame) and its true env_from_object."""
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    true = upright(35.0, (0.2, -0.1, 0.0))
+    dirs = [np.array([1.0, 0.2, 0.8]), np.array([-0.6, 0.9, 0.7]), np.array([-0.3, -1.0, 0.6])]
+    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs)
+    return ycb_models["power_drill"], scene, obj, true
+
+
 def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
-    shared_data: Path, ycb_models: dict[str, PreparedModel], monkeypatch: pytest.MonkeyPatch
+    drill_on_table: DrillOnTable, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The drill standing on a table, verified; when the refit on the support (the fit
     restricted to the plane) turns the pose by 4° (the scan does not hold that turn), the
@@ -817,11 +831,7 @@ def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
     explains fewer model points (its fitness is lower)."""
     from workers.pipeline.pose import refine
 
-    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
-    true = upright(35.0, (0.2, -0.1, 0.0))
-    dirs = [np.array([1.0, 0.2, 0.8]), np.array([-0.6, 0.9, 0.7]), np.array([-0.3, -1.0, 0.6])]
-    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs)
-    model = ycb_models["power_drill"]
+    model, scene, obj, true = drill_on_table
     held = estimate_pose(model, scene, cluster_points_env=obj)
     assert held.verified, held.rejections
     assert pose_error(held.env_from_object, true)[1] < 2.0
@@ -854,18 +864,14 @@ def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
 
 
 def test_a_refit_on_the_support_that_raises_the_fitness_is_kept(
-    shared_data: Path, ycb_models: dict[str, PreparedModel], monkeypatch: pytest.MonkeyPatch
+    drill_on_table: DrillOnTable, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The drill standing on a table, its pose turned 5° about the table's normal before it
     is set flat (as a tall object's fits can leave it): the refit on the support turns it
     back, explains more of the scan, and is kept; unverified, naming the turn."""
     from workers.pipeline.pose import refine
 
-    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
-    true = upright(35.0, (0.2, -0.1, 0.0))
-    dirs = [np.array([1.0, 0.2, 0.8]), np.array([-0.6, 0.9, 0.7]), np.array([-0.3, -1.0, 0.6])]
-    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs)
-    model = ycb_models["power_drill"]
+    model, scene, obj, true = drill_on_table
     real_out_of_support = refine.out_of_support
 
     def turned(pose: np.ndarray, *args: object) -> np.ndarray:
@@ -886,10 +892,7 @@ def test_a_refit_on_the_support_that_raises_the_fitness_is_kept(
 
 @pytest.mark.parametrize("tilt_deg", [6.0, 15.0, 30.0])
 def test_a_pose_tipping_on_its_support_is_set_down_and_beyond_the_window_unverified(
-    shared_data: Path,
-    ycb_models: dict[str, PreparedModel],
-    monkeypatch: pytest.MonkeyPatch,
-    tilt_deg: float,
+    drill_on_table: DrillOnTable, monkeypatch: pytest.MonkeyPatch, tilt_deg: float
 ) -> None:
     """The drill standing on a table, its fitted pose tilted about a level axis and lowered
     until it touches the table on an edge of its base (as a hollow bowl's scan tilts it):
@@ -899,11 +902,7 @@ def test_a_pose_tipping_on_its_support_is_set_down_and_beyond_the_window_unverif
     from workers.pipeline.pose import refine
     from workers.pipeline.pose.fit import lowest_height
 
-    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
-    true = upright(35.0, (0.2, -0.1, 0.0))
-    dirs = [np.array([1.0, 0.2, 0.8]), np.array([-0.6, 0.9, 0.7]), np.array([-0.3, -1.0, 0.6])]
-    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs)
-    model = ycb_models["power_drill"]
+    model, scene, obj, true = drill_on_table
     real_out_of_support = refine.out_of_support
 
     def tipping(

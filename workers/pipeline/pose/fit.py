@@ -116,15 +116,14 @@ def _tukey_step(
     return free @ y, width, weights
 
 
-def plane_motions(normal: NDArray[np.float64], turn: bool = True) -> NDArray[np.float64]:
+def _plane_motions(normal: NDArray[np.float64]) -> NDArray[np.float64]:
     """(6, 3) motions of a rigid body on a plane of unit ``normal``: the turn about it and
-    the two shifts across it, as [rotation vector, translation] columns; (6, 2), the
-    shifts only, without ``turn``."""
+    the two shifts across it, as [rotation vector, translation] columns."""
     n = normalised(np.asarray(normal, dtype=np.float64)[None, :])[0]
     u, v = np.linalg.svd(np.eye(3) - np.outer(n, n))[0][:, :2].T
     free = np.zeros((6, 3))
     free[:3, 0], free[3:, 1], free[3:, 2] = n, u, v
-    return free if turn else free[:, 1:]
+    return free
 
 
 def fit_scene_to_model(
@@ -134,15 +133,14 @@ def fit_scene_to_model(
     reach_m: float,
     iters: int,
     sigma_floor_m: float = 0.0005,
-    motions: NDArray[np.float64] | None = None,
+    plane_normal: NDArray[np.float64] | None = None,
 ) -> tuple[Mat4, NDArray[np.float64]]:
     """Refine ``init`` (env_from_object) by the (M, 3) scene points' distances to the model's
     tangent planes: each scene point within ``reach_m`` pairs with its nearest model sample
     and is weighted by Tukey's biweight at 4.685 × the residuals' robust σ (1.4826 × MAD,
     at least ``sigma_floor_m``; at most ``reach_m``). Returns (pose, (M,) final weights).
-    ``motions``: (6, F) [rotation vector, translation] columns the pose may move along,
-    all six when None (:func:`plane_motions`: an object resting on a plane keeps its tilt
-    and height).
+    ``plane_normal`` (3,) unit: only turns about it and shifts across it (an object resting
+    on a plane keeps its tilt and height).
 
     The model is exact and the scan is the measurement, so the residuals are the scan's
     errors: no scene normals (blurred over 2 voxels on a noisy scan), no hidden model parts
@@ -151,7 +149,7 @@ def fit_scene_to_model(
     a neighbour) falls outside the biweight."""
     pose = init.copy()
     weights = np.zeros(len(scene))
-    free = np.eye(6) if motions is None else motions
+    free = np.eye(6) if plane_normal is None else _plane_motions(plane_normal)
     for _ in range(iters):
         x, _, weights = _tukey_step(surface, scene, pose, reach_m, sigma_floor_m, free)
         if x is None:

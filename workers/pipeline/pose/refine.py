@@ -9,7 +9,7 @@ the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robus
 to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
 lifted onto its support when it sank into it, and set flat on it when it touches it
 (within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified;
-the turn across it refitted unless that lowers the fitness, the shift always); that turn and the
+the turn and shift across it refitted unless that lowers the fitness); that turn and the
 rotation the residual level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`)
 say how well the scan holds it.
 """
@@ -41,7 +41,6 @@ from workers.pipeline.pose.fit import (
     normalised,
     out_of_support,
     plane_beyond,
-    plane_motions,
     resting_turn,
     rotation_slack_deg,
     truncated_score,
@@ -187,11 +186,10 @@ class Refiner:
         so it would fall over: the scan, not the object, is tilted, as a hollow bowl's is;
         tilted further, something holds it). That face is turned flat about the object's
         centre, the turn about the plane's normal and the shift across it refitted by the
-        scan-to-model fit on the (M, 3) ``scene`` points (the refitted turn kept unless it
-        lowers the fitness, :meth:`evaluate`: then only the shift is refitted), and the
-        lowest point set on the plane. Objects stand on their supports: the plane, fitted
-        on thousands of floor points, holds the tilt and height better than the object's
-        own few hundred.
+        scan-to-model fit on the (M, 3) ``scene`` points (kept unless it lowers the fitness,
+        :meth:`evaluate`: then the pose set flat stays), and the lowest point set on the
+        plane. Objects stand on their supports: the plane, fitted on thousands of floor
+        points, holds the tilt and height better than the object's own few hundred.
         Otherwise ``pose`` unchanged. Also returns, degrees, how far the refit turned it
         (beyond ``max_final_turn_deg`` the scan does not hold that turn) and the tilt taken
         out beyond the window (0 within it); the caller counts either against
@@ -219,23 +217,15 @@ class Refiner:
         flat = np.eye(4)
         flat[:3, :3] = turn @ pose[:3, :3]
         flat[:3, 3] = turn @ (pose[:3, 3] - centre) + centre
-        rested, shifted = (
-            fit_scene_to_model(
-                self.surface,
-                scene,
-                flat,
-                reach_m,
-                o.final_max_iterations,
-                motions=plane_motions(support[:3], turn),
-            )[0]
-            for turn in (True, False)
+        rested, _ = fit_scene_to_model(
+            self.surface, scene, flat, reach_m, o.final_max_iterations, plane_normal=support[:3]
         )
         refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
-        for p in (shifted, rested):
+        for p in (flat, rested):
             p[:3, 3] -= lowest_height(transform_points(p, m.points), support) * support[:3]
-        # a refitted turn that lowers the fitness slid off what the scan holds (a tall
-        # object's weak turn): the turn set flat stays, only its shift refitted
-        kept = rested if self.evaluate(rested)[0] >= self.evaluate(shifted)[0] else shifted
+        # a refit that lowers the fitness slid off what the scan holds (a tall object's
+        # weak turn): the pose set flat stays
+        kept = rested if self.evaluate(rested)[0] >= self.evaluate(flat)[0] else flat
         return kept, refit_turn, tipped_deg
 
     def evaluate(self, env_from_object: Mat4) -> tuple[float, float]:

@@ -228,13 +228,18 @@ class Refiner:
         kept = rested if self.evaluate(rested)[0] >= self.evaluate(flat)[0] else flat
         return kept, refit_turn, tipped_deg
 
+    @property
+    def inlier_distance_m(self) -> float:
+        """The inlier distance of ``fitness``: ``inlier_voxels``, at most
+        ``max_inlier_distance_m``, metres."""
+        o = self.ctx.options
+        return min(o.inlier_voxels * self.ctx.model.voxel_m, o.max_inlier_distance_m)
+
     def evaluate(self, env_from_object: Mat4) -> tuple[float, float]:
         """(fitness, inlier RMSE in metres) of ``env_from_object``: the share of every model
-        point with a scene point within the inlier distance (``inlier_voxels``, at most
-        ``max_inlier_distance_m``), and those distances' RMS."""
-        o, v = self.ctx.options, self.ctx.model.voxel_m
-        dist_in = min(o.inlier_voxels * v, o.max_inlier_distance_m)
-        fine = self.ctx.region.fine
+        point with a scene point within :attr:`inlier_distance_m`, and those distances'
+        RMS."""
+        fine, dist_in = self.ctx.region.fine, self.inlier_distance_m
         ev = REG.evaluate_registration(self.model_full, fine, dist_in, env_from_object)
         return float(ev.fitness), float(ev.inlier_rmse)
 
@@ -320,7 +325,7 @@ class Refiner:
             runner_up=runner_up,
             fitness=fitness,
             inlier_rmse_m=rmse,
-            inlier_distance_m=min(o.inlier_voxels * v, o.max_inlier_distance_m),
+            inlier_distance_m=self.inlier_distance_m,
             best=best.trial,
             rotation_slack_deg=slack,
             final_turn_deg=turn,

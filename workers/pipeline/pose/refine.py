@@ -177,7 +177,9 @@ class Refiner:
             top,
         )
 
-    def _at_rest(self, pose: Mat4, scene: Points, reach_m: float) -> tuple[Mat4, float, float]:
+    def _at_rest(
+        self, pose: Mat4, scene: Points, reach_m: float
+    ) -> tuple[Mat4, float, float, tuple[float, float] | None]:
         """``pose`` set flat on its support when it touches it: its lowest point within
         ``max_sink_m`` of the plane (which reaches beyond it). It is set on its base (−up of
         the model: the library gives models resting on it), else on the hull face nearest
@@ -193,25 +195,26 @@ class Refiner:
         Otherwise ``pose`` unchanged. Also returns, degrees, how far the refit turned it
         (beyond ``max_final_turn_deg`` the scan does not hold that turn) and the tilt taken
         out beyond the window (0 within it); the caller counts either against
-        verification."""
+        verification; and the returned pose's :meth:`evaluate` when it was computed here
+        (None otherwise)."""
         m, o, support = self.ctx.model, self.ctx.options, self.ctx.region.support
         if support is None or o.rest_max_tilt_deg <= 0:
-            return pose, 0.0, 0.0
+            return pose, 0.0, 0.0, None
         posed = transform_points(pose, m.points)
         on_support = self.ctx.region.on_support
         if abs(lowest_height(posed, support)) > o.max_sink_m or not plane_beyond(
             posed, on_support, 2 * m.voxel_m
         ):
-            return pose, 0.0, 0.0
+            return pose, 0.0, 0.0, None
         faces = (pose[:3, :3], self.rest_bases, self.hull_faces, support[:3])
         turn = resting_turn(*faces, o.rest_max_tilt_deg)
         tipped_deg = 0.0
         if turn is None:
             if o.max_set_down_tilt_deg <= o.rest_max_tilt_deg:
-                return pose, 0.0, 0.0
+                return pose, 0.0, 0.0, None
             turn = resting_turn(*faces, o.max_set_down_tilt_deg)
             if turn is None:
-                return pose, 0.0, 0.0
+                return pose, 0.0, 0.0, None
             tipped_deg = rotation_angle_deg(turn)
         centre = pose[:3, :3] @ m.centre_object + pose[:3, 3]
         flat = np.eye(4)
@@ -225,8 +228,10 @@ class Refiner:
             p[:3, 3] -= lowest_height(transform_points(p, m.points), support) * support[:3]
         # a refit that lowers the fitness slid off what the scan holds (a tall object's
         # weak turn): the pose set flat stays
-        kept = rested if self.evaluate(rested)[0] >= self.evaluate(flat)[0] else flat
-        return kept, refit_turn, tipped_deg
+        refit, as_set = self.evaluate(rested), self.evaluate(flat)
+        if refit[0] >= as_set[0]:
+            return rested, refit_turn, tipped_deg, refit
+        return flat, refit_turn, tipped_deg, as_set
 
     @property
     def inlier_distance_m(self) -> float:
@@ -301,7 +306,7 @@ class Refiner:
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
-        env_from_object, rest_turn, tipped = self._at_rest(env_from_object, scene, reach)
+        env_from_object, rest_turn, tipped, evaluated = self._at_rest(env_from_object, scene, reach)
         turn = max(turn, rest_turn)
         runner_up = next(
             (
@@ -318,7 +323,7 @@ class Refiner:
             ),
             0.0,
         )
-        fitness, rmse = self.evaluate(env_from_object)
+        fitness, rmse = evaluated or self.evaluate(env_from_object)
         return Refinement(
             env_from_object=env_from_object,
             score=best.score,

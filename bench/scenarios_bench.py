@@ -83,6 +83,8 @@ from workers.pipeline.synth import (
 ROOT = Path(__file__).resolve().parents[1]
 TMP = Path(os.environ.get("TWINDELTA_BENCH_TMP", "/tmp/twindelta_bench"))
 CACHE = ROOT / "bench" / ".cache"
+#: the reconstruct stage's code: a cached cloud built by other code is not reused
+RECONSTRUCT_SOURCE = ROOT / "workers" / "pipeline" / "reconstruct"
 # power_drill first; the last non-symmetric object (hammer) is the generator's spare, the
 # one that appears in added / swapped / multiple; master_chef_can is the symmetric one.
 OBJECTS = ["power_drill", "large_clamp", "mustard_bottle", "master_chef_can", "hammer"]
@@ -120,6 +122,15 @@ def _hash_inputs(*parts: Any) -> str:
             h.update(part.read_bytes())
         else:
             h.update(repr(part).encode())
+    return h.hexdigest()[:16]
+
+
+def _source_digest(package: Path) -> str:
+    """SHA-256 (16 hex digits) of the ``*.py`` files under ``package``, by relative path."""
+    h = hashlib.sha256()
+    for f in sorted(package.rglob("*.py")):
+        h.update(str(f.relative_to(package)).encode())
+        h.update(f.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -164,12 +175,16 @@ def reconstruct_capture(
     work: Path, scene_dir: Path, capture: str, preset: str, reference_cloud: Path | None
 ) -> tuple[Path, dict[str, Any], bool]:
     """Reconstruct ``capture`` like the snapshot job (intrinsics + markers, no poses) but
-    with ``BENCH_SFM_THREADS``, cached by a hash of the images, options and reference
-    cloud; returns (work dir, quality, whether it was cached)."""
+    with ``BENCH_SFM_THREADS``, cached by a hash of the images, the resolved options, the
+    reconstruct stage's source and the reference cloud (a changed default or stage rebuilds
+    the cloud); returns (work dir, quality, whether it was cached)."""
     images = scene_dir / capture / "images"
     intrinsics = _declared_intrinsics(scene_dir, capture)
     reference = json.loads((scene_dir / "reference.json").read_text())
-    key = _hash_inputs(images, preset, BENCH_SFM_THREADS, intrinsics, reference, reference_cloud)
+    options = options_from_preset(preset, num_threads=BENCH_SFM_THREADS)
+    key = _hash_inputs(
+        images, options, _source_digest(RECONSTRUCT_SOURCE), intrinsics, reference, reference_cloud
+    )
     out = work / "reconstructions" / key
     if (out / "quality.json").is_file() and (out / "cloud.ply").is_file():
         return out, json.loads((out / "quality.json").read_text()), True
@@ -177,7 +192,7 @@ def reconstruct_capture(
     res = reconstruct(
         images,
         out,
-        options_from_preset(preset, num_threads=BENCH_SFM_THREADS),
+        options,
         None if intrinsics is None else parse_cameras({"intrinsics": intrinsics}),
         reference,
         reference_cloud,

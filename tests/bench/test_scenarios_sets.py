@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -102,3 +103,46 @@ def test_a_subset_of_worlds_keeps_each_worlds_lens(
         assert not synths[f"test_{name}_ideal_camera"].effects.active
     assert scenarios_bench.main(["--set", "test", "--worlds", "flat_removed,nope"]) == 2
     assert "nope" in capsys.readouterr().err
+
+
+def test_a_cached_cloud_is_reused_only_for_the_same_options_and_stage_code(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    scene_dir = tmp_path / "scene"
+    (scene_dir / "before" / "images").mkdir(parents=True)
+    (scene_dir / "before" / "images" / "view_000.png").write_bytes(b"png")
+    (scene_dir / "reference.json").write_text("{}")
+    source = tmp_path / "reconstruct"
+    source.mkdir()
+    (source / "stage.py").write_text("x = 1\n")
+    monkeypatch.setattr(scenarios_bench, "RECONSTRUCT_SOURCE", source)
+    built: list[Path] = []
+
+    def fake_reconstruct(images: Path, out: Path, options: Any, *rest: Any) -> Any:
+        out.mkdir(parents=True)
+        (out / "cloud.ply").write_bytes(b"ply")
+        (out / "quality.json").write_text(json.dumps({"points": 1}))
+        built.append(out)
+        return SimpleNamespace(quality={"points": 1})
+
+    monkeypatch.setattr(scenarios_bench, "reconstruct", fake_reconstruct)
+
+    def capture() -> tuple[Path, bool]:
+        out, _, cached = scenarios_bench.reconstruct_capture(
+            tmp_path / "work", scene_dir, "before", "default", None
+        )
+        return out, cached
+
+    first, cached = capture()
+    assert not cached and capture() == (first, True)
+    (source / "stage.py").write_text("x = 2\n")  # the stage's code changed: built again
+    second, cached = capture()
+    assert not cached and second != first
+    defaults = scenarios_bench.options_from_preset
+    monkeypatch.setattr(  # a changed default: built again
+        scenarios_bench,
+        "options_from_preset",
+        lambda preset, **kw: defaults(preset, **kw, point_stride=1),
+    )
+    third, cached = capture()
+    assert not cached and third not in (first, second) and len(built) == 3

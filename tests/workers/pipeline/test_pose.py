@@ -777,6 +777,67 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     assert len(refiner._in_view(points, np.eye(3))) == 150
 
 
+def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
+    """Model points half a band or more under the support plane are not hidden by it (the
+    support's own points lie within half a band of it): a pose tilted into the floor
+    cannot raise its score by burying what it fails to explain."""
+    from types import SimpleNamespace
+
+    from workers.pipeline.pose.refine import Refiner
+
+    band = 0.004
+    heights = (-0.004, -0.0025, -0.0015, 0.003)  # sunk, sunk, within the support's noise, in band
+    points = np.column_stack([np.zeros((4, 2)), heights])
+    normals = np.tile([1.0, 0.0, 0.0], (4, 1))
+    region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=band)
+    ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
+    points, normals = np.repeat(points, 5, axis=0), np.repeat(normals, 5, axis=0)
+    refiner = Refiner(ctx, None, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
+    seen = refiner._in_view(points, np.eye(3))
+    assert sorted(set(np.round(seen[:, 2], 4))) == [-0.004, -0.0025]
+
+
+def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path: Path) -> None:
+    """A flat object's smeared scan can fit its other face best from every start; when the
+    best refined pose is upside down, its turns that stand it upright are refined too, and
+    the true pose among them wins on the scan (an adjustable wrench seen from above)."""
+    from workers.pipeline.pose.candidates import FitContext
+    from workers.pipeline.pose.crop import check_inputs, crop_scene
+    from workers.pipeline.pose.refine import Refined, Refiner
+    from workers.pipeline.pose.result import Trial
+
+    mesh = shared_data / "ycb" / "adjustable_wrench" / "textured.obj"
+    model = prepare_model(mesh, tmp_path / "wrench")
+    true = upright(30.0, (0.0, 0.0, 0.0))
+    true[2, 3] -= transform_points(true, model.points)[:, 2].min()
+    dirs = [np.array([np.cos(a), np.sin(a), 1.2]) for a in (0.3, 2.4, 4.4)]
+    scene, obj = partial_view(mesh, true, 3, camera_dirs=dirs, table=False)
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-0.25, 0.25, (20000, 2)), rng.normal(0, 0.0015, 20000)])
+    scene = SceneCloud.create(
+        np.vstack([obj, floor]), np.vstack([scene.normals, np.tile(UP, (len(floor), 1))])
+    )
+    options = POSE_PRESETS["default"]
+    inputs = check_inputs(obj[obj[:, 2] > 0.0045], None, None, UP)
+    refiner = Refiner.create(
+        FitContext(model, crop_scene(model, scene, inputs, options), (), options, inputs.up)
+    )
+    centred = model.points - model.centre_object
+    long_axis = np.linalg.eigh(centred.T @ centred)[1][:, 2]
+    over = 2.0 * np.outer(long_axis, long_axis) - np.eye(3)  # 180° about its length
+    upside_down = true @ make_rigid(over, model.centre_object - over @ model.centre_object)
+    refiner.refined = [Refined(1.0, upside_down, Trial("given", 1.0, 0.5, 0.001, 0.0, upside_down))]
+    refiner._turn_upright()
+    turned = [r for r in refiner.refined if refiner.ctx.upright(r.env_from_object)]
+    assert turned and len(refiner.refined) == 1 + len(turned)
+    best = max(turned, key=lambda r: r.score)
+    dt, dr = symmetric_pose_error(best.env_from_object, true, model.symmetry, model.centre_object)
+    assert dt < 0.005 and dr < 2.0
+    assert best.score > refiner.score(upside_down)
+    refiner._turn_upright()  # once per pose
+    assert len(refiner.refined) == 1 + len(turned)
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])
 def test_colour_reads_the_texture_through_the_shading(
     shared_data: Path, ycb_models: dict[str, PreparedModel], seed: int

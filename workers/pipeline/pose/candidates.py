@@ -182,7 +182,7 @@ def distinct_ranked(
     return out
 
 
-def _flips(model: PreparedModel) -> list[tuple[str, Mat4]]:
+def flips(model: PreparedModel) -> list[tuple[str, Mat4]]:
     """180° turns about the principal axes through the centroid, plus near-symmetries."""
     c = model.points - model.centre_object
     _, vecs = np.linalg.eigh(c.T @ c)
@@ -277,7 +277,7 @@ def _ransac_candidates(pool: CandidatePool, round_: int) -> None:
 
 
 def _flip_candidates(pool: CandidatePool) -> None:
-    """The best ``n_flip_bases`` distinct candidates not turned yet, turned by :func:`_flips`:
+    """The best ``n_flip_bases`` distinct candidates not turned yet, turned by :func:`flips`:
     RANSAC on a partial view often gets an elongated object's axes right but its ends
     swapped."""
     m = pool.ctx.model
@@ -286,7 +286,7 @@ def _flip_candidates(pool: CandidatePool) -> None:
         if id(base) in pool.flipped:
             continue
         pool.flipped.add(id(base))
-        for name, flip in _flips(m):
+        for name, flip in flips(m):
             pool.polish(base.env_from_object @ flip, f"{base.source} + {name}", time.perf_counter())
 
 

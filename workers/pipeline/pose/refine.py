@@ -31,6 +31,7 @@ from workers.pipeline.pose.candidates import (
     FitContext,
     distinct_pose,
     distinct_ranked,
+    flips,
 )
 from workers.pipeline.pose.fit import (
     ModelSurface,
@@ -98,6 +99,7 @@ class Refiner:
     hull_faces: Points
     refined: list[Refined] = field(default_factory=list)
     refined_ids: set[int] = field(default_factory=set)
+    turned_ids: set[int] = field(default_factory=set)
 
     @classmethod
     def create(cls, ctx: FitContext) -> Refiner:
@@ -126,27 +128,52 @@ class Refiner:
             pose = icp_point_to_plane(
                 self.mid_points, self.mid_normals, target, pose, scale * v, o.icp_max_iterations
             )
-        posed_mid = transform_points(pose, self.mid_points)
-        score = truncated_score(
-            target.tree, self._in_view(posed_mid, pose[:3, :3]), o.fine_score_voxels * v
+        return Refined(self.score(pose), pose, trial)
+
+    def score(self, env_from_object: Mat4) -> float:
+        """The fine score of a pose: :func:`truncated_score` at ``fine_score_voxels`` of the
+        mid-sample model points a camera could see (:meth:`_in_view`) times the
+        :meth:`FitContext.exclusion` of them all."""
+        o, v = self.ctx.options, self.ctx.model.voxel_m
+        posed_mid = transform_points(env_from_object, self.mid_points)
+        in_view = self._in_view(posed_mid, env_from_object[:3, :3])
+        return truncated_score(
+            self.ctx.region.target_fine.tree, in_view, o.fine_score_voxels * v
         ) * self.ctx.exclusion(posed_mid)
-        return Refined(score, pose, trial)
 
     def _in_view(self, posed: Points, rotation: NDArray[np.float64]) -> Points:
         """Of the (N, 3) mid-sample model points posed with (3, 3) ``rotation``, those a
         camera could see: not on the support (within its band: the scene has no point
         there) nor facing down at it within two voxels (under an object resting there no
-        camera looks: a mug upright hides its base, upside down only its rim)."""
+        camera looks: a mug upright hides its base, upside down only its rim). Points sunk
+        below the support's own points (half a band under the plane) stay: a pose does not
+        hide what it fails to explain in the floor."""
         region = self.ctx.region
         if region.support is None:
             return posed
         n = region.support[:3]
         height = posed @ n + region.support[3]
         facing = self.mid_normals @ rotation.T @ n
-        hidden = (height <= region.band_m) | (
-            (facing < -0.7) & (height < 2 * self.ctx.model.voxel_m)
+        hidden = (height >= -region.band_m / 2) & (
+            (height <= region.band_m) | ((facing < -0.7) & (height < 2 * self.ctx.model.voxel_m))
         )
         return posed[~hidden] if np.count_nonzero(~hidden) >= 10 else posed
+
+    def _turn_upright(self) -> None:
+        """When the best refined pose is upside down, its turns (:func:`flips`) that stand
+        it upright are refined too, once per pose: a flat object's smeared scan fits its
+        other face almost as well, and no start may have come near its upright pose."""
+        top = self.refined[0]
+        if self.ctx.upright(top.env_from_object) or id(top) in self.turned_ids:
+            return
+        self.turned_ids.add(id(top))
+        t = top.trial
+        for name, flip in flips(self.ctx.model):
+            pose = top.env_from_object @ flip
+            if self.ctx.upright(pose):
+                turned = Trial(f"{t.source} + {name}", t.score, t.fitness, t.inlier_rmse_m, 0, pose)
+                self.refined.append(self._refine(turned))
+        self.refined.sort(key=lambda r: -r.score)
 
     def _winner(self) -> Refined:
         """The best refined pose, unless it is upside down (model up away from the
@@ -272,6 +299,7 @@ class Refiner:
             self.refined_ids.add(id(t))
             self.refined.append(self._refine(t))
         self.refined.sort(key=lambda r: -r.score)
+        self._turn_upright()
         best = self._winner()
         slack = turn = 0.0
         icp_pose = icp_point_to_plane(

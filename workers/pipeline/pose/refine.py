@@ -3,8 +3,9 @@
 The best ``n_refine`` distinct candidates not refined yet (across rounds) are refined by
 multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` → ``0.25v``,
 pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels`` on the
-model points a camera could see (not those resting on the support), where near-symmetric
-alternatives separate. The winner gets a last ICP on every model point and then a fit of
+model points a camera could see (not those resting on the support; sunk ones count), where
+near-symmetric alternatives separate; an upside-down best is also refined turned upright.
+The winner gets a last ICP on every model point and then a fit of
 the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene
 to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
 lifted onto its support when it sank into it, and set flat on it when it touches it

@@ -5,10 +5,10 @@ multi-scale point-to-plane ICP on a ``v/2`` subsample of the model (``1.5v`` →
 pairs with incompatible normals ignored) and re-scored at ``fine_score_voxels`` on the
 model points a camera could see (not those resting on the support; sunk ones count), where
 near-symmetric alternatives separate; an upside-down best is also refined turned upright.
-The winner gets a last ICP on every model point and then a fit of
-the scan onto them (:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene
-to model), kept unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is
-lifted onto its support when it sank into it, and set flat on it when it touches it
+The winner gets a last ICP on every model point and then a fit of the scan onto them
+(:func:`~workers.pipeline.pose.fit.fit_scene_to_model`, robust, scene to model), kept
+unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is lifted onto its
+support when it sank into it, and set flat on it when it touches it
 (within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified;
 the turn and shift across it refitted unless that lowers the fitness); that turn and the
 rotation the residual level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`)
@@ -89,7 +89,8 @@ class Refinement:
 @dataclass
 class Refiner:
     """Refinement state across rounds (mutable): every ``refined`` candidate so far, best
-    first after each round, and the ids of the trials already refined."""
+    first after each round, the ids of the trials already refined and of the refined poses
+    already turned upright (:meth:`_turn_upright`)."""
 
     ctx: FitContext
     model_full: o3d.geometry.PointCloud

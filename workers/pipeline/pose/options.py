@@ -83,6 +83,13 @@ class PoseOptions:
     # face tilted past rest_max_tilt_deg) is set down on it, unverified, up to this tilt,
     # degrees; tilted more, something holds it; ≤ rest_max_tilt_deg disables
     max_set_down_tilt_deg: float = 20.0
+    # an object resting on its support at most this tall, × its diameter, takes its turn on
+    # it and shift across it from its outline seen from above (top_view.py); 0 disables
+    top_view_max_height_ratio: float = 0.5
+    # cap on the outline distances of that fit, voxels; ≥ the scan's noise at the outline
+    top_view_reach_voxels: float = 2.0
+    # how far from the outline at the start points take part in it, voxels; ≥ the start's error
+    top_view_window_voxels: float = 4.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
     max_rotation_slack_deg: float = 20.0

@@ -10,7 +10,8 @@ The winner gets a last ICP on every model point and then a fit of the scan onto 
 unless it turned the ICP's pose by more than ``max_final_turn_deg``; it is lifted onto its
 support when it sank into it, and set flat on it when it touches it
 (within ``rest_max_tilt_deg``: verifiable; within ``max_set_down_tilt_deg``: unverified;
-the turn and shift across it refitted unless that lowers the fitness); that turn and the
+the turn and shift across it refitted unless that lowers the fitness, a flat object's to
+its outline seen from above, :mod:`~workers.pipeline.pose.top_view`); that turn and the
 rotation the residual level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`)
 say how well the scan holds it.
 """
@@ -48,6 +49,7 @@ from workers.pipeline.pose.fit import (
     truncated_score,
 )
 from workers.pipeline.pose.result import Trial
+from workers.pipeline.pose.top_view import fit_top_view
 
 REG = o3d.pipelines.registration
 
@@ -218,8 +220,9 @@ class Refiner:
         tilted further, something holds it). That face is turned flat about the object's
         centre, the turn about the plane's normal and the shift across it refitted by the
         scan-to-model fit on the (M, 3) ``scene`` points (kept unless it lowers the fitness,
-        :meth:`evaluate`: then the pose set flat stays), and the lowest point set on the
-        plane. Objects stand on their supports: the plane, fitted on thousands of floor
+        :meth:`evaluate`: then the pose set flat stays; a flat object's, :meth:`_is_flat`,
+        by its outline seen from above, :meth:`_seen_from_above`), and the lowest point set
+        on the plane. Objects stand on their supports: the plane, fitted on thousands of floor
         points, holds the tilt and height better than the object's own few hundred.
         Otherwise ``pose`` unchanged. Also returns, degrees, how far the refit turned it
         (beyond ``max_final_turn_deg`` the scan does not hold that turn) and the tilt taken
@@ -252,15 +255,47 @@ class Refiner:
         rested, _ = fit_scene_to_model(
             self.surface, scene, flat, reach_m, o.final_max_iterations, plane_normal=support[:3]
         )
-        refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
         for p in (flat, rested):
             p[:3, 3] -= lowest_height(transform_points(p, m.points), support) * support[:3]
+        if self._is_flat(flat):
+            # a flat object's fitness barely tells its turns apart: its outline does
+            seen = self._seen_from_above(flat, rested)
+            seen_turn = symmetric_pose_error(seen, flat, m.symmetry, m.centre_object)[1]
+            return seen, seen_turn, tipped_deg, None
+        refit_turn = symmetric_pose_error(rested, flat, m.symmetry, m.centre_object)[1]
         # a refit that lowers the fitness slid off what the scan holds (a tall object's
         # weak turn): the pose set flat stays
         refit, as_set = self.evaluate(rested), self.evaluate(flat)
         if refit[0] >= as_set[0]:
             return rested, refit_turn, tipped_deg, refit
         return flat, refit_turn, tipped_deg, as_set
+
+    def _is_flat(self, env_from_object: Mat4) -> bool:
+        """Whether the model posed on the support stands at most
+        ``top_view_max_height_ratio`` × its diameter tall above it."""
+        m, support = self.ctx.model, self.ctx.region.support
+        if support is None:
+            return False
+        heights = m.points @ (env_from_object[:3, :3].T @ support[:3])
+        ratio = self.ctx.options.top_view_max_height_ratio
+        return float(np.ptp(heights)) <= ratio * m.diameter_m
+
+    def _seen_from_above(self, *starts: Mat4) -> Mat4:
+        """The in-plane fit of the outline seen from above
+        (:func:`~workers.pipeline.pose.top_view.fit_top_view`) from the poses ``starts``
+        resting on the support."""
+        m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
+        assert region.support is not None
+        return fit_top_view(
+            m.points,
+            m.centre_object,
+            starts,
+            region.support,
+            region.target_fine.points,
+            region.on_support,
+            o.top_view_reach_voxels * m.voxel_m,
+            o.top_view_window_voxels * m.voxel_m,
+        )
 
     @property
     def inlier_distance_m(self) -> float:

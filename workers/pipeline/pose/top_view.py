@@ -1,0 +1,211 @@
+"""The in-plane pose of an object resting on its support, from its outline seen from above.
+
+A flat object's scan holds its turn on the support badly for point-to-plane fits: its top
+face faces up and says nothing about the turn, and stereo smears its low sides into the
+floor. Seen from above, its outline still holds the turn: the scan's points of the object
+fall inside the model's outline, the support's points seen around it outside.
+:func:`fit_top_view` turns the pose about the plane's normal and shifts it across the plane
+to agree with both. All points are (N, 3) float64 metres; poses are 4×4
+``env_from_object``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+from scipy.optimize import minimize
+from scipy.spatial import cKDTree
+
+from workers.pipeline.geometry import Mat4, Points, perpendicular_pair, rotation_about_unit_axis
+
+#: turns about the support's normal each fit starts from, degrees (the cost has local
+#: minima a few degrees apart on an elongated outline)
+START_TURNS_DEG = (0.0, -4.0, 4.0, -8.0, 8.0)
+#: the most times the points are chosen again around the fit
+MAX_PASSES = 3
+#: the finest outline cell, metres, and the most cells along a side of the outline's grid
+MIN_CELL_M = 0.001
+MAX_CELLS = 600
+
+
+@dataclass(frozen=True)
+class Outline:
+    """A model's outline seen along ``axis_object`` (object frame, unit): in-plane axes
+    ``u``, ``v`` (object frame), the grid's ``origin`` (2,) and ``cell_m``, and the
+    distances (metres) of each cell to the outline from outside (0 inside) and to the
+    outline of its foot from inside (0 outside); ``height_m``: the model's extent along the
+    axis."""
+
+    axis_object: NDArray[np.float64]
+    u: NDArray[np.float64]
+    v: NDArray[np.float64]
+    origin: NDArray[np.float64]
+    cell_m: float
+    outside_m: NDArray[np.float64]
+    inside_m: NDArray[np.float64]
+    height_m: float
+
+    @classmethod
+    def create(
+        cls, model_points: Points, axis_object: NDArray[np.float64], margin_m: float, foot_m: float
+    ) -> Outline:
+        """The outline of the (N, 3) model surface samples (object frame) along the unit
+        ``axis_object``, on a grid reaching ``margin_m`` beyond it, and (for ``inside_m``)
+        the outline of its foot, the samples up to ``foot_m`` above its lowest: the support
+        shows under an overhang (a drill's body, a mug's handle). The samples' projections
+        are closed over their spacing (a closed surface's projection covers its outline,
+        so holes through the object, a shackle's, stay open)."""
+        u, v = perpendicular_pair(axis_object)
+        flat = np.column_stack([model_points @ u, model_points @ v])
+        heights = model_points @ axis_object
+        lo, hi = flat.min(axis=0) - margin_m, flat.max(axis=0) + margin_m
+        cell = max(MIN_CELL_M, float(np.max(hi - lo)) / MAX_CELLS)
+        shape = np.ceil((hi - lo) / cell).astype(int) + 1
+        sample = model_points[:: max(1, len(model_points) // 2000)]
+        spacing = float(np.median(cKDTree(model_points).query(sample, k=2)[0][:, 1]))
+        reach = max(1, int(np.ceil(spacing / cell)))
+        square = np.ones((2 * reach + 1, 2 * reach + 1), dtype=bool)
+
+        def mask(keep: NDArray[np.bool_]) -> NDArray[np.bool_]:
+            out = np.zeros(shape, dtype=bool)
+            ij = np.round((flat[keep] - lo) / cell).astype(int)
+            out[ij[:, 0], ij[:, 1]] = True
+            closed = ndimage.binary_closing(out, structure=square, border_value=0)
+            return np.asarray(closed | out, dtype=bool)
+
+        whole = mask(np.ones(len(flat), dtype=bool))
+        foot = mask(heights <= heights.min() + foot_m)
+        return cls(
+            axis_object=np.asarray(axis_object, dtype=np.float64),
+            u=u,
+            v=v,
+            origin=lo,
+            cell_m=cell,
+            outside_m=ndimage.distance_transform_edt(~whole) * cell,
+            inside_m=ndimage.distance_transform_edt(foot) * cell,
+            height_m=float(heights.max() - heights.min()),
+        )
+
+    def cells(self, env_from_object: Mat4, points_env: Points) -> NDArray[np.float64]:
+        """(2, M) grid coordinates of (M, 3) env points under ``env_from_object``."""
+        q = (points_env - env_from_object[:3, 3]) @ env_from_object[:3, :3]
+        return ((np.column_stack([q @ self.u, q @ self.v]) - self.origin) / self.cell_m).T
+
+    def cost(
+        self, env_from_object: Mat4, object_env: Points, support_env: Points, cap_m: float
+    ) -> float:
+        """Σ of squared distances (capped at ``cap_m``, in units of it) of the (M, 3) object
+        points outside the outline and of the (S, 3) support points inside its foot."""
+        outside = ndimage.map_coordinates(
+            self.outside_m, self.cells(env_from_object, object_env), order=1, cval=cap_m
+        )
+        inside = ndimage.map_coordinates(
+            self.inside_m, self.cells(env_from_object, support_env), order=1, cval=0.0
+        )
+        return (
+            float(np.sum(np.minimum(outside, cap_m) ** 2) + np.sum(np.minimum(inside, cap_m) ** 2))
+            / cap_m**2
+        )
+
+
+def _turned(
+    env_from_object: Mat4,
+    normal: NDArray[np.float64],
+    centre_env: NDArray[np.float64],
+    x: NDArray[np.float64],
+) -> Mat4:
+    """``env_from_object`` turned by ``x[0]`` radians about ``normal`` through
+    ``centre_env`` and shifted by ``x[1:]`` along the plane's in-plane axes."""
+    a, b = perpendicular_pair(normal)
+    turn = rotation_about_unit_axis(normal, float(x[0]))
+    out = np.eye(4)
+    out[:3, :3] = turn @ env_from_object[:3, :3]
+    out[:3, 3] = turn @ (env_from_object[:3, 3] - centre_env) + centre_env + x[1] * a + x[2] * b
+    return out
+
+
+def fit_top_view(
+    model_points: Points,
+    centre_object: NDArray[np.float64],
+    starts: Sequence[Mat4],
+    support: NDArray[np.float64],
+    scene_env: Points,
+    support_env: Points,
+    reach_m: float,
+    window_m: float,
+) -> Mat4:
+    """The pose, of ``starts`` (env_from_object, each resting on the plane ``support`` =
+    [n, d], unit n, on the same face) turned about n and shifted across the plane, whose
+    outline seen along n (of the (N, 3) model samples, object frame) best holds the (M, 3)
+    ``scene_env`` points up to the model's height above the plane and leaves out the
+    (S, 3) ``support_env`` points: squared distances capped at ``reach_m`` summed over the
+    points within ``window_m`` of the outline, minimised from each start turned by
+    :data:`START_TURNS_DEG`, the points chosen again around the result up to
+    :data:`MAX_PASSES` times (as ICP pairs points again). The fits are compared on the
+    points near any of them. A start stays when no scan point is near its outline."""
+    n = support[:3]
+    outline = Outline.create(model_points, starts[0][:3, :3].T @ n, window_m + reach_m, reach_m)
+    height = scene_env @ n + support[3]
+    above = scene_env[height <= outline.height_m + window_m]
+
+    def near(pose: Mat4, points: Points, within_m: float) -> NDArray[np.bool_]:
+        d = ndimage.map_coordinates(
+            outline.outside_m, outline.cells(pose, points), order=1, cval=np.inf
+        )
+        return np.asarray(d <= within_m)
+
+    def chosen(poses: Sequence[Mat4]) -> tuple[Points, Points]:
+        # the support's points only ever push the outline off them: all on the grid count
+        obj = np.logical_or.reduce([near(p, above, window_m) for p in poses])
+        floor = np.logical_or.reduce([near(p, support_env, window_m + reach_m) for p in poses])
+        return above[obj], support_env[floor]
+
+    fits = []
+    for start in starts:
+        pose = start
+        for i in range(MAX_PASSES):
+            obj, floor = chosen([pose])
+            if len(obj) < 10:
+                break
+            moved = _fit_pass(outline, pose, centre_object, n, obj, floor, reach_m, first=i == 0)
+            done = np.allclose(moved, pose, atol=1e-6)
+            pose = moved
+            if done:
+                break
+        fits.append(pose)
+    obj, floor = chosen(fits)
+    return min(fits, key=lambda p: outline.cost(p, obj, floor, reach_m))
+
+
+def _fit_pass(
+    outline: Outline,
+    pose: Mat4,
+    centre_object: NDArray[np.float64],
+    normal: NDArray[np.float64],
+    obj: Points,
+    floor: Points,
+    reach_m: float,
+    first: bool,
+) -> Mat4:
+    """One pass of :func:`fit_top_view` on chosen points: the least-cost pose from ``pose``
+    turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
+    centre = pose[:3, :3] @ centre_object + pose[:3, 3]
+
+    def cost(x: NDArray[np.float64]) -> float:
+        return outline.cost(_turned(pose, normal, centre, x), obj, floor, reach_m)
+
+    best_x, best = np.zeros(3), cost(np.zeros(3))
+    for turn_deg in START_TURNS_DEG if first else (0.0,):
+        r = minimize(
+            cost,
+            np.array([np.radians(turn_deg), 0.0, 0.0]),
+            method="Powell",
+            options={"xtol": 1e-5, "ftol": 1e-4},
+        )
+        if r.fun < best:
+            best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
+    return _turned(pose, normal, centre, best_x)

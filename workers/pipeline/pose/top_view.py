@@ -100,15 +100,10 @@ class Outline:
     ) -> float:
         """Σ of squared distances (capped at ``cap_m``, in units of it) of the (M, 3) object
         points outside the outline and of the (S, 3) support points inside its foot."""
-        outside = ndimage.map_coordinates(
-            self.outside_m, self.cells(env_from_object, object_env), order=1, cval=cap_m
-        )
-        inside = ndimage.map_coordinates(
-            self.inside_m, self.cells(env_from_object, support_env), order=1, cval=0.0
-        )
-        return (
-            float(np.sum(np.minimum(outside, cap_m) ** 2) + np.sum(np.minimum(inside, cap_m) ** 2))
-            / cap_m**2
+        return _capped_sum(
+            _bilinear(self.outside_m, self.cells(env_from_object, object_env), cap_m),
+            _bilinear(self.inside_m, self.cells(env_from_object, support_env), 0.0),
+            cap_m,
         )
 
 
@@ -153,10 +148,7 @@ def fit_top_view(
     above = scene_env[height <= outline.height_m + window_m]
 
     def near(pose: Mat4, points: Points, within_m: float) -> NDArray[np.bool_]:
-        d = ndimage.map_coordinates(
-            outline.outside_m, outline.cells(pose, points), order=1, cval=np.inf
-        )
-        return np.asarray(d <= within_m)
+        return _bilinear(outline.outside_m, outline.cells(pose, points), np.inf) <= within_m
 
     def chosen(poses: Sequence[Mat4]) -> tuple[Points, Points]:
         # the support's points only ever push the outline off them: all on the grid count
@@ -192,11 +184,27 @@ def _fit_pass(
     first: bool,
 ) -> Mat4:
     """One pass of :func:`fit_top_view` on chosen points: the least-cost pose from ``pose``
-    turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
+    turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone. The
+    points are carried into the plane once: a turn about the normal and a shift across it
+    move them in the plane only."""
     centre = pose[:3, :3] @ centre_object + pose[:3, 3]
+    axes = pose[:3, :3] @ np.column_stack([outline.u, outline.v])  # (3, 2) env frame
+    a, b = perpendicular_pair(normal)
+    shifts = axes.T @ np.column_stack([a, b])  # (2, 2): the plane's shifts on the grid's axes
+    offset = (axes.T @ (centre - pose[:3, 3]) - outline.origin) / outline.cell_m
+    obj_flat, floor_flat = axes.T @ (obj - centre).T, axes.T @ (floor - centre).T
+
+    def cells(flat: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+        c, s = np.cos(x[0]), np.sin(x[0])
+        back = np.array([[c, s], [-s, c]])  # the points turned by -x[0]
+        return (back @ (flat - (shifts @ x[1:])[:, None])) / outline.cell_m + offset[:, None]
 
     def cost(x: NDArray[np.float64]) -> float:
-        return outline.cost(_turned(pose, normal, centre, x), obj, floor, reach_m)
+        return _capped_sum(
+            _bilinear(outline.outside_m, cells(obj_flat, x), reach_m),
+            _bilinear(outline.inside_m, cells(floor_flat, x), 0.0),
+            reach_m,
+        )
 
     best_x, best = np.zeros(3), cost(np.zeros(3))
     for turn_deg in START_TURNS_DEG if first else (0.0,):
@@ -209,3 +217,29 @@ def _fit_pass(
         if r.fun < best:
             best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
     return _turned(pose, normal, centre, best_x)
+
+
+def _capped_sum(outside: NDArray[np.float64], inside: NDArray[np.float64], cap_m: float) -> float:
+    """Σ of the squared distances, each capped at ``cap_m``, in units of it."""
+    return (
+        float(np.sum(np.minimum(outside, cap_m) ** 2) + np.sum(np.minimum(inside, cap_m) ** 2))
+        / cap_m**2
+    )
+
+
+def _bilinear(
+    grid: NDArray[np.float64], cells: NDArray[np.float64], fill: float
+) -> NDArray[np.float64]:
+    """``grid`` interpolated bilinearly at (2, M) cell coordinates; ``fill`` off the grid."""
+    i, j = np.floor(cells[0]), np.floor(cells[1])
+    on = (i >= 0) & (j >= 0) & (i < grid.shape[0] - 1) & (j < grid.shape[1] - 1)
+    out = np.full(cells.shape[1], fill, dtype=np.float64)
+    i0, j0 = i[on].astype(int), j[on].astype(int)
+    fi, fj = cells[0][on] - i0, cells[1][on] - j0
+    out[on] = (
+        grid[i0, j0] * (1 - fi) * (1 - fj)
+        + grid[i0 + 1, j0] * fi * (1 - fj)
+        + grid[i0, j0 + 1] * (1 - fi) * fj
+        + grid[i0 + 1, j0 + 1] * fi * fj
+    )
+    return out

@@ -88,7 +88,8 @@ class PoseOptions:
     top_view_max_height_ratio: float = 0.5
     # cap on the outline distances of that fit, voxels; ≥ the scan's noise at the outline
     top_view_reach_voxels: float = 2.0
-    # how far from the outline at the start points take part in it, voxels; ≥ the start's error
+    # the scan's points within this of the outline take part in that fit, voxels; raise
+    # when flat poses start further off (the points are chosen again around the fit)
     top_view_window_voxels: float = 4.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer

@@ -20,13 +20,23 @@ from scipy import ndimage
 from scipy.optimize import minimize
 from scipy.spatial import cKDTree
 
-from workers.pipeline.geometry import Mat4, Points, perpendicular_pair, rotation_about_unit_axis
+from workers.pipeline.geometry import (
+    Mat4,
+    Points,
+    perpendicular_pair,
+    rotation_about_unit_axis,
+    rotation_angle_deg,
+)
 
 #: turns about the support's normal each fit starts from, degrees (the cost has local
 #: minima a few degrees apart on an elongated outline)
 START_TURNS_DEG = (0.0, -4.0, 4.0, -8.0, 8.0)
 #: the most times the points are chosen again around the fit
 MAX_PASSES = 3
+#: the most a fit may turn its start, degrees: further, it has left the pose it refines
+#: (a smear around the foot drew a flat box a quarter turn), which the candidates' scores
+#: choose, not the outline
+MAX_TURN_DEG = 20.0
 #: the finest outline cell, metres, and the most cells along a side of the outline's grid
 MIN_CELL_M = 0.001
 MAX_CELLS = 600
@@ -141,7 +151,8 @@ def fit_top_view(
     points within ``window_m`` of the outline, minimised from each start turned by
     :data:`START_TURNS_DEG`, the points chosen again around the result up to
     :data:`MAX_PASSES` times (as ICP pairs points again). The fits are compared on the
-    points near any of them. A start stays when no scan point is near its outline."""
+    points near any of them. A start stays when no scan point is near its outline or its
+    fit turned it more than :data:`MAX_TURN_DEG`."""
     n = support[:3]
     outline = Outline.create(model_points, starts[0][:3, :3].T @ n, window_m + reach_m, reach_m)
     height = scene_env @ n + support[3]
@@ -168,7 +179,8 @@ def fit_top_view(
             pose = moved
             if done:
                 break
-        fits.append(pose)
+        turned = rotation_angle_deg(pose[:3, :3] @ start[:3, :3].T)
+        fits.append(pose if turned <= MAX_TURN_DEG else start)
     obj, floor = chosen(fits)
     return min(fits, key=lambda p: outline.cost(p, obj, floor, reach_m))
 

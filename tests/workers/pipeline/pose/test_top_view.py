@@ -100,3 +100,14 @@ def test_without_scan_points_near_its_outline_the_start_stays() -> None:
     far = np.random.default_rng(6).uniform(0.5, 0.6, (500, 3))
     fitted = fit_top_view(pts, pts.mean(axis=0), [true], FLOOR, far, np.zeros((0, 3)), 0.008, 0.016)
     assert np.array_equal(fitted, true)
+
+
+def test_a_fit_that_would_turn_its_start_far_leaves_it_where_it_was() -> None:
+    # started 45° off, the outline fit would leave the pose it refines: the candidates'
+    # scores choose among poses that far apart, so the start stays
+    pts, nrm = l_plate(7)
+    true = turn((0.0, 0.0, -30.0), (0.1, 0.2, 0.0))
+    scene, floor = smeared_scan(pts, nrm, true, 8)
+    start = turn((0.0, 0.0, 45.0), (0.0, 0.0, 0.0)) @ true
+    fitted = fit_top_view(pts, pts.mean(axis=0), [start], FLOOR, scene, floor, 0.008, 0.1)
+    assert np.array_equal(fitted, start)

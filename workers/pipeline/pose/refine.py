@@ -287,8 +287,7 @@ class Refiner:
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         assert region.support is not None
         return fit_top_view(
-            m.points,
-            m.centre_object,
+            m,
             starts,
             region.support,
             region.target_fine.points,

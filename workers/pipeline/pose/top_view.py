@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,21 +26,36 @@ from workers.pipeline.geometry import (
     Points,
     perpendicular_pair,
     rotation_about_unit_axis,
-    rotation_angle_deg,
 )
+from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
 
 #: turns about the support's normal each fit starts from, degrees (the cost has local
 #: minima a few degrees apart on an elongated outline)
 START_TURNS_DEG = (0.0, -4.0, 4.0, -8.0, 8.0)
 #: the most times the points are chosen again around the fit
 MAX_PASSES = 3
-#: the most a fit may turn its start, degrees: further, it has left the pose it refines
-#: (a smear around the foot drew a flat box a quarter turn), which the candidates' scores
-#: choose, not the outline
-MAX_TURN_DEG = 20.0
+#: the most a fit may turn its start (modulo the object's symmetry), degrees: half a
+#: quarter turn, beyond which a box-like outline is nearer its next pose than the one it
+#: refines (a smear around the foot drew a flat box 85° round); the candidates' scores
+#: choose among those, not the outline
+MAX_TURN_DEG = 45.0
 #: the finest outline cell, metres, and the most cells along a side of the outline's grid
 MIN_CELL_M = 0.001
 MAX_CELLS = 600
+
+
+class OutlineModel(Protocol):
+    """What the fit needs of a model (a :class:`~workers.pipeline.model.PreparedModel` is
+    one): (N, 3) surface samples and (3,) centre, object frame, metres, and its symmetry."""
+
+    @property
+    def points(self) -> Points: ...
+
+    @property
+    def centre_object(self) -> NDArray[np.float64]: ...
+
+    @property
+    def symmetry(self) -> SymmetrySpec: ...
 
 
 @dataclass(frozen=True)
@@ -134,8 +150,7 @@ def _turned(
 
 
 def fit_top_view(
-    model_points: Points,
-    centre_object: NDArray[np.float64],
+    model: OutlineModel,
     starts: Sequence[Mat4],
     support: NDArray[np.float64],
     scene_env: Points,
@@ -145,16 +160,17 @@ def fit_top_view(
 ) -> Mat4:
     """The pose, of ``starts`` (env_from_object, each resting on the plane ``support`` =
     [n, d], unit n, on the same face) turned about n and shifted across the plane, whose
-    outline seen along n (of the (N, 3) model samples, object frame) best holds the (M, 3)
+    outline seen along n (of ``model.points``, object frame) best holds the (M, 3)
     ``scene_env`` points up to the model's height above the plane and leaves out the
     (S, 3) ``support_env`` points: squared distances capped at ``reach_m`` summed over the
     points within ``window_m`` of the outline, minimised from each start turned by
     :data:`START_TURNS_DEG`, the points chosen again around the result up to
     :data:`MAX_PASSES` times (as ICP pairs points again). The fits are compared on the
     points near any of them. A start stays when no scan point is near its outline or its
-    fit turned it more than :data:`MAX_TURN_DEG`."""
+    fit turned it more than :data:`MAX_TURN_DEG` (modulo ``model.symmetry``: a bowl's spin
+    is no turn)."""
     n = support[:3]
-    outline = Outline.create(model_points, starts[0][:3, :3].T @ n, window_m + reach_m, reach_m)
+    outline = Outline.create(model.points, starts[0][:3, :3].T @ n, window_m + reach_m, reach_m)
     height = scene_env @ n + support[3]
     above = scene_env[height <= outline.height_m + window_m]
 
@@ -174,12 +190,12 @@ def fit_top_view(
             obj, floor = chosen([pose])
             if len(obj) < 10:
                 break
-            moved = _fit_pass(outline, pose, centre_object, n, obj, floor, reach_m, first=i == 0)
+            moved = _fit_pass(outline, pose, model.centre_object, n, obj, floor, reach_m, i == 0)
             done = np.allclose(moved, pose, atol=1e-6)
             pose = moved
             if done:
                 break
-        turned = rotation_angle_deg(pose[:3, :3] @ start[:3, :3].T)
+        turned = symmetric_pose_error(pose, start, model.symmetry, model.centre_object)[1]
         fits.append(pose if turned <= MAX_TURN_DEG else start)
     obj, floor = chosen(fits)
     return min(fits, key=lambda p: outline.cost(p, obj, floor, reach_m))

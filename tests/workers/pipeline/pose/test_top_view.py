@@ -5,10 +5,13 @@ seen around it (not under it)."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
 from tests.workers.pipeline.pose.test_final_fit import box_surface, errors, turn
 from workers.pipeline.geometry import transform_points
+from workers.pipeline.model.symmetry_group import NO_SYMMETRY
 from workers.pipeline.pose.top_view import Outline, fit_top_view
 
 FLOOR = np.array([0.0, 0.0, 1.0, 0.0])
@@ -22,6 +25,11 @@ def l_plate(seed: int) -> tuple[np.ndarray, np.ndarray]:
     b, bn = box_surface((0.03, 0.08, 0.012), 3000, seed + 1)
     b += np.array([0.065, 0.055, 0.0])
     return np.vstack([a, b]), np.vstack([an, bn])
+
+
+def model_of(points: np.ndarray) -> SimpleNamespace:
+    """What the fit needs of a model without symmetry: samples, centre, symmetry."""
+    return SimpleNamespace(points=points, centre_object=points.mean(axis=0), symmetry=NO_SYMMETRY)
 
 
 def smeared_scan(
@@ -50,7 +58,7 @@ def smeared_scan(
 def test_a_flat_object_turned_and_shifted_on_the_floor_is_fitted_back_to_its_outline() -> None:
     pts, nrm = l_plate(0)
     true = turn((0.0, 0.0, 25.0), (0.3, -0.1, 0.0))
-    centre = pts.mean(axis=0)
+    shape = model_of(pts)
     for seed in (1, 2):
         scene, floor = smeared_scan(pts, nrm, true, seed)
         starts = [
@@ -60,14 +68,14 @@ def test_a_flat_object_turned_and_shifted_on_the_floor_is_fitted_back_to_its_out
         for start in starts:
             # 9° turns the L's far end 12 mm, beyond the window: the points are chosen
             # again around the fit until it settles
-            fitted = fit_top_view(pts, centre, [start], FLOOR, scene, floor, 0.008, 0.01)
+            fitted = fit_top_view(shape, [start], FLOOR, scene, floor, 0.008, 0.01)
             dt, dr = errors(fitted, true)
             assert dr < 0.2 and dt < 0.0005, (seed, dt, dr)
             # the fit only turns about the floor's normal and shifts across it
             assert abs(fitted[2, 3] - true[2, 3]) < 1e-9
             assert np.allclose(fitted[:3, 2], [0.0, 0.0, 1.0])
         # of two starts the one whose fit holds the scan best wins
-        both = fit_top_view(pts, centre, starts[::-1], FLOOR, scene, floor, 0.008, 0.01)
+        both = fit_top_view(shape, starts[::-1], FLOOR, scene, floor, 0.008, 0.01)
         assert errors(both, true)[1] < 0.2
 
 
@@ -98,16 +106,17 @@ def test_without_scan_points_near_its_outline_the_start_stays() -> None:
     pts, _ = l_plate(5)
     true = turn((0.0, 0.0, 10.0), (0.0, 0.0, 0.0))
     far = np.random.default_rng(6).uniform(0.5, 0.6, (500, 3))
-    fitted = fit_top_view(pts, pts.mean(axis=0), [true], FLOOR, far, np.zeros((0, 3)), 0.008, 0.016)
+    fitted = fit_top_view(model_of(pts), [true], FLOOR, far, np.zeros((0, 3)), 0.008, 0.016)
     assert np.array_equal(fitted, true)
 
 
 def test_a_fit_that_would_turn_its_start_far_leaves_it_where_it_was() -> None:
-    # started 45° off, the outline fit would leave the pose it refines: the candidates'
-    # scores choose among poses that far apart, so the start stays
+    # started 45° off, the outline fit would leave the pose it refines (unbounded, it turns
+    # it 135°, to the mirror of the true pose): the candidates' scores choose among poses
+    # that far apart, so the start stays
     pts, nrm = l_plate(7)
     true = turn((0.0, 0.0, -30.0), (0.1, 0.2, 0.0))
     scene, floor = smeared_scan(pts, nrm, true, 8)
     start = turn((0.0, 0.0, 45.0), (0.0, 0.0, 0.0)) @ true
-    fitted = fit_top_view(pts, pts.mean(axis=0), [start], FLOOR, scene, floor, 0.008, 0.1)
+    fitted = fit_top_view(model_of(pts), [start], FLOOR, scene, floor, 0.008, 0.1)
     assert np.array_equal(fitted, start)

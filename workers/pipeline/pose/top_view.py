@@ -36,8 +36,7 @@ START_TURNS_DEG = (0.0, -4.0, 4.0, -8.0, 8.0)
 MAX_PASSES = 3
 #: the most a fit may turn its start (modulo the object's symmetry), degrees: half a
 #: quarter turn, beyond which a box-like outline is nearer its next pose than the one it
-#: refines (a smear around the foot drew a flat box 85° round); the candidates' scores
-#: choose among those, not the outline
+#: refines; the candidates' scores choose among those, not the outline
 MAX_TURN_DEG = 45.0
 #: the finest outline cell, metres, and the most cells along a side of the outline's grid
 MIN_CELL_M = 0.001

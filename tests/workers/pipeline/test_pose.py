@@ -889,8 +889,9 @@ def test_a_refit_on_the_support_that_turns_the_pose_far_leaves_it_unverified(
     """The drill standing on a table, verified; when the refit on the support (the fit
     restricted to the plane) turns the pose by 4° (the scan does not hold that turn), the
     pose is unverified, naming the turn, and stays the one set flat: the turned refit
-    explains fewer model points (its fitness is lower). The drill lies low (a quarter of
-    its diameter tall): the fit of its outline seen from above is off here."""
+    explains fewer model points (its fitness is lower). The drill on its base, a quarter
+    of its diameter tall, counts as flat: the fit of its outline seen from above is off
+    here, where the point-to-plane refit is under test."""
     from workers.pipeline.pose import refine
 
     model, scene, obj, true = drill_on_table
@@ -932,7 +933,7 @@ def test_a_refit_on_the_support_that_raises_the_fitness_is_kept(
     """The drill standing on a table, its pose turned 5° about the table's normal before it
     is set flat (as a tall object's fits can leave it): the refit on the support turns it
     back, explains more of the scan, and is kept; unverified, naming the turn. With the fit
-    of its outline seen from above (the drill lies low), that fit turns it back."""
+    of its outline seen from above (the drill counts as flat), that fit turns it back."""
     from workers.pipeline.pose import refine
 
     model, scene, obj, true = drill_on_table

@@ -59,13 +59,12 @@ class OutlineModel(Protocol):
 
 @dataclass(frozen=True)
 class Outline:
-    """A model's outline seen along ``axis_object`` (object frame, unit): in-plane axes
-    ``u``, ``v`` (object frame), the grid's ``origin`` (2,) and ``cell_m``, and the
+    """A model's outline seen along an axis (object frame, unit, ``u`` × ``v``): in-plane
+    axes ``u``, ``v`` (object frame), the grid's ``origin`` (2,) and ``cell_m``, and the
     distances (metres) of each cell to the outline from outside (0 inside) and to the
     outline of its foot from inside (0 outside); ``height_m``: the model's extent along the
     axis."""
 
-    axis_object: NDArray[np.float64]
     u: NDArray[np.float64]
     v: NDArray[np.float64]
     origin: NDArray[np.float64]
@@ -105,7 +104,6 @@ class Outline:
         whole = mask(np.ones(len(flat), dtype=bool))
         foot = mask(heights <= heights.min() + foot_m)
         return cls(
-            axis_object=np.asarray(axis_object, dtype=np.float64),
             u=u,
             v=v,
             origin=lo,

@@ -162,6 +162,7 @@ QUALITY_FIGURES = (
     "visible_fitness",
     "settled_by_visibility",
     "settled_by_reprojection",
+    "settled_by_outline",
     "reprojection",
 )
 

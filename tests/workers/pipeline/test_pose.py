@@ -48,6 +48,7 @@ from workers.pipeline.pose.fit import (
     out_of_support,
     resting_turn,
 )
+from workers.pipeline.pose.refine import Refiner
 from workers.pipeline.pose.verify import cluster_coverage
 from workers.pipeline.seeded import seeded_open3d
 
@@ -797,14 +798,12 @@ def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
     assert sorted(set(np.round(seen[:, 2], 4))) == [-0.004, -0.0025]
 
 
-def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path: Path) -> None:
-    """A flat object's smeared scan can fit its other face best from every start; when the
-    best refined pose is upside down, its turns that stand it upright are refined too, and
-    the true pose among them wins on the scan (an adjustable wrench seen from above)."""
+def wrench_from_above(shared_data: Path, tmp_path: Path) -> tuple[Refiner, np.ndarray, np.ndarray]:
+    """A refiner of an adjustable wrench lying on the floor seen from above (three cameras,
+    its smeared scan and 1.5 mm noisy floor), its true pose and that pose turned over about
+    the wrench's length (its other face up: upside down)."""
     from workers.pipeline.pose.candidates import FitContext
     from workers.pipeline.pose.crop import check_inputs, crop_scene
-    from workers.pipeline.pose.refine import Refined, Refiner
-    from workers.pipeline.pose.result import Trial
 
     mesh = shared_data / "ycb" / "adjustable_wrench" / "textured.obj"
     model = prepare_model(mesh, tmp_path / "wrench")
@@ -826,6 +825,18 @@ def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path
     long_axis = np.linalg.eigh(centred.T @ centred)[1][:, 2]
     over = 2.0 * np.outer(long_axis, long_axis) - np.eye(3)  # 180° about its length
     upside_down = true @ make_rigid(over, model.centre_object - over @ model.centre_object)
+    return refiner, true, upside_down
+
+
+def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path: Path) -> None:
+    """A flat object's smeared scan can fit its other face best from every start; when the
+    best refined pose is upside down, its turns that stand it upright are refined too, and
+    the true pose among them wins on the scan (an adjustable wrench seen from above)."""
+    from workers.pipeline.pose.refine import Refined
+    from workers.pipeline.pose.result import Trial
+
+    refiner, true, upside_down = wrench_from_above(shared_data, tmp_path)
+    model = refiner.ctx.model
     refiner.refined = [Refined(1.0, upside_down, Trial("given", 1.0, 0.5, 0.001, 0.0, upside_down))]
     refiner._turn_upright()
     turned = [r for r in refiner.refined if refiner.ctx.upright(r.env_from_object)]
@@ -836,6 +847,60 @@ def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path
     assert best.score > refiner.score(upside_down)
     refiner._turn_upright()  # once per pose
     assert len(refiner.refined) == 1 + len(turned)
+
+
+def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_them(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """The wrench from above with two near-ties of its true pose: the same pose turned 6°
+    (distinct as refined; finished as the winner is, it comes to the winner's pose: no
+    rival) and its other face up (distinct either way: its outline is the mirror image
+    and leaves the scan's points outside it, so the outline settles the tie). With the
+    outline off, the other face stays the runner-up; given the other face as the winner,
+    the outline chooses the true pose."""
+    from workers.pipeline.pose.candidates import CandidatePool
+    from workers.pipeline.pose.refine import Refined
+    from workers.pipeline.pose.result import Trial
+
+    refiner, true, upside_down = wrench_from_above(shared_data, tmp_path)
+    model = refiner.ctx.model
+    centre = transform_points(true, model.centre_object[None])[0]
+    spun = (
+        make_rigid(
+            axis_angle_matrix(UP, np.radians(6.0)),
+            centre - axis_angle_matrix(UP, np.radians(6.0)) @ centre,
+        )
+        @ true
+    )
+
+    def refined(score: float, pose: np.ndarray) -> Refined:
+        return Refined(score, pose, Trial("given", score, 0.5, 0.001, 0.0, pose))
+
+    pool = CandidatePool(refiner.ctx, None, None)  # type: ignore[arg-type]
+    for ratio, settles in ((0.0, False), (refiner.ctx.options.outline_settle_ratio, True)):
+        refiner.ctx = replace(
+            refiner.ctx, options=replace(refiner.ctx.options, outline_settle_ratio=ratio)
+        )
+        refiner.finished = {}
+        refiner.refined = [refined(1.0, true), refined(0.97, spun), refined(0.95, upside_down)]
+        fit = refiner.round(pool)
+        assert pose_error(fit.env_from_object, true)[1] < 2.0
+        if settles:
+            assert fit.runner_up == 0.0 and fit.settled_by_outline is not None
+            cost, rival = fit.settled_by_outline
+            assert rival > ratio * cost
+        else:
+            assert fit.runner_up == 0.95 and fit.settled_by_outline is None
+        # the spun near-tie, finished, came to the winner's pose
+        spun_done = refiner.finished[id(refiner.refined[1])].env_from_object
+        assert pose_error(spun_done, fit.env_from_object)[1] < 1.0
+        assert [r.score for r in fit.others] == [0.97, 0.95]
+    winner, mirrored = (
+        refiner.finished[id(refiner.refined[0])],
+        refiner.finished[id(refiner.refined[2])],
+    )
+    settled = refiner._by_outline([mirrored, winner])
+    assert settled is not None and settled[0] is winner
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3, 4])

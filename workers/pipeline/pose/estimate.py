@@ -70,8 +70,7 @@ def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) 
         if verdict.verified:
             break
     timings["rounds"] = float(round_ + 1)
-    others = tuple(r for r in refiner.refined if r.trial is not fit.best)
-    return _Fit(fit, verdict, tuple(pool.trials), others)
+    return _Fit(fit, verdict, tuple(pool.trials), fit.others)
 
 
 def _unsettled(model: PreparedModel, chosen_by: str) -> tuple[str, ...]:
@@ -156,5 +155,6 @@ def estimate_pose(
         alternatives=tuple(Alternative(r.score, r.env_from_object) for r in rounds.alternatives),
         rotation_slack_deg=fit.rotation_slack_deg,
         final_turn_deg=fit.final_turn_deg,
+        settled_by_outline=fit.settled_by_outline,
         timings_s=timings,
     )

@@ -99,6 +99,10 @@ class PoseOptions:
     max_final_turn_deg: float = 3.0
     # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85
+    # a flat pose's outline seen from above chooses among its near-ties: the least-cost
+    # one when the best-scoring costs more than this × it per scan point, settled when
+    # every other does; 0 disables; lower settles more
+    outline_settle_ratio: float = 1.25
     # seed of RANSAC and the support-plane search: one seed, one result
     seed: int = 0
 

@@ -13,7 +13,9 @@ support when it sank into it, and set flat on it when it touches it
 the turn and shift across it refitted unless that lowers the fitness, a flat object's to
 its outline seen from above, :mod:`~workers.pipeline.pose.top_view`); that turn and the
 rotation the residual level hides (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`)
-say how well the scan holds it.
+say how well the scan holds it. Its near-ties (refined poses scoring almost as well) are
+finished the same way: one that comes to the winner's pose is no rival, and among flat
+ones the outline seen from above may settle which face and turn the scan shows.
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ from workers.pipeline.pose.fit import (
     truncated_score,
 )
 from workers.pipeline.pose.result import Trial
-from workers.pipeline.pose.top_view import fit_top_view
+from workers.pipeline.pose.top_view import fit_top_view, outline_costs
 
 REG = o3d.pipelines.registration
 
@@ -67,14 +69,18 @@ class Refined:
 @dataclass(frozen=True)
 class Refinement:
     """The winner of one round: ``env_from_object`` after the last fits and the support
-    steps, its fine ``score``, the ``runner_up`` (fine score of the best distinct other
-    refined pose, 0 if none), ``fitness`` and ``inlier_rmse_m`` of every model point within
+    steps, its fine ``score``, the ``runner_up`` (fine score of the best other refined pose
+    still distinct from it when finished as it was, 0 if none; none when the outline
+    settled the near-ties), ``fitness`` and ``inlier_rmse_m`` of every model point within
     ``inlier_distance_m`` of the scene, the ``best`` trial it came from and the
     ``rotation_slack_deg`` its residual level hides, and ``final_turn_deg``, how far the
     scan-to-model fit turned the ICP's pose, or the refit on the support turned the pose
     set flat, whichever is more, modulo symmetry (both 0 when not computed), and
     ``tipped_deg``, the tilt taken out when it touched its support on nothing it could rest
-    on (0 otherwise)."""
+    on (0 otherwise); ``others``: every other refined pose, best first;
+    ``settled_by_outline``: (its outline's cost per scan point, the least near-tie's) when
+    the outline settled the near-ties of a flat pose (:meth:`Refiner._by_outline`), else
+    None."""
 
     env_from_object: Mat4
     score: float
@@ -86,13 +92,30 @@ class Refinement:
     rotation_slack_deg: float = 0.0
     final_turn_deg: float = 0.0
     tipped_deg: float = 0.0
+    others: tuple[Refined, ...] = ()
+    settled_by_outline: tuple[float, float] | None = None
+
+
+@dataclass(frozen=True)
+class _Finished:
+    """A refined pose after the winner's last steps (:meth:`Refiner._finish`): its
+    ``env_from_object`` and the figures :class:`Refinement` reports of it (``evaluated``:
+    its :meth:`Refiner.evaluate` when already computed)."""
+
+    refined: Refined
+    env_from_object: Mat4
+    rotation_slack_deg: float
+    final_turn_deg: float
+    tipped_deg: float
+    evaluated: tuple[float, float] | None
 
 
 @dataclass
 class Refiner:
     """Refinement state across rounds (mutable): every ``refined`` candidate so far, best
     first after each round, the ids of the trials already refined and of the refined poses
-    already turned upright (:meth:`_turn_upright`)."""
+    already turned upright (:meth:`_turn_upright`), and the refined poses already finished
+    (:meth:`_finish`) by id."""
 
     ctx: FitContext
     model_full: o3d.geometry.PointCloud
@@ -104,6 +127,7 @@ class Refiner:
     refined: list[Refined] = field(default_factory=list)
     refined_ids: set[int] = field(default_factory=set)
     turned_ids: set[int] = field(default_factory=set)
+    finished: dict[int, _Finished] = field(default_factory=dict)
 
     @classmethod
     def create(cls, ctx: FitContext) -> Refiner:
@@ -325,24 +349,21 @@ class Refiner:
                 picks.append(other)
         return picks
 
-    def round(self, pool: CandidatePool) -> Refinement:
-        """Step 3 for one round: refine the new best distinct candidates of ``pool``, then
-        finish the best refined pose so far."""
+    def _finish(self, refined: Refined) -> _Finished:
+        """The last steps of a refined pose (once per pose): ICP on every model point, the
+        scan-to-model fit (kept unless it turned the ICP's pose by more than
+        ``max_final_turn_deg``), lifted out of its support and set at rest on it
+        (:meth:`_at_rest`)."""
+        if id(refined) in self.finished:
+            return self.finished[id(refined)]
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         v = m.voxel_m
-        distinct = distinct_ranked(pool.trials, m.symmetry, m.diameter_m, m.centre_object)
-        for t in self._picks(distinct):
-            self.refined_ids.add(id(t))
-            self.refined.append(self._refine(t))
-        self.refined.sort(key=lambda r: -r.score)
-        self._turn_upright()
-        best = self._winner()
         slack = turn = 0.0
         icp_pose = icp_point_to_plane(
             m.points,
             m.normals,
             region.target_fine,
-            best.env_from_object,
+            refined.env_from_object,
             o.icp_scales_voxels[-1] * v,
             o.icp_max_iterations,
         )
@@ -371,32 +392,96 @@ class Refiner:
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
         env_from_object, rest_turn, tipped, evaluated = self._at_rest(env_from_object, scene, reach)
-        turn = max(turn, rest_turn)
-        runner_up = next(
-            (
-                r.score
-                for r in self.refined
-                if r is not best
-                and distinct_pose(
-                    r.env_from_object,
-                    env_from_object,
-                    m.symmetry,
-                    m.diameter_m,
-                    centre=m.centre_object,
-                )
-            ),
-            0.0,
+        done = _Finished(refined, env_from_object, slack, max(turn, rest_turn), tipped, evaluated)
+        self.finished[id(refined)] = done
+        return done
+
+    def _distinct(self, a: Mat4, b: Mat4) -> bool:
+        """:func:`distinct_pose` for this model."""
+        m = self.ctx.model
+        return distinct_pose(a, b, m.symmetry, m.diameter_m, centre=m.centre_object)
+
+    def _by_outline(self, contenders: list[_Finished]) -> tuple[_Finished, float, float] | None:
+        """Of distinct ``contenders`` (the winner first, then its near-ties) all resting
+        flat on the support (:meth:`_is_flat`), the one the outline seen from above chooses
+        (:func:`~workers.pipeline.pose.top_view.outline_costs`, per scan point: a flat
+        object's fine scores barely tell its faces apart, its outline does): the least-cost
+        one when the winner costs more than ``outline_settle_ratio`` × it, else the winner;
+        with its cost and the least of the others'. None when one is not flat, no scan
+        point is near them, or ``outline_settle_ratio`` is 0."""
+        m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
+        ratio = o.outline_settle_ratio
+        if region.support is None or ratio <= 0:
+            return None
+        if not all(self._is_flat(c.env_from_object) for c in contenders):
+            return None
+        costs = outline_costs(
+            m,
+            [c.env_from_object for c in contenders],
+            region.support,
+            region.target_fine.points,
+            region.on_support,
+            o.top_view_reach_voxels * m.voxel_m,
+            o.top_view_window_voxels * m.voxel_m,
         )
-        fitness, rmse = evaluated or self.evaluate(env_from_object)
+        least = int(np.argmin(costs))
+        if not np.isfinite(costs[least]):
+            return None
+        chosen = least if costs[0] > ratio * costs[least] else 0
+        other = min(c for i, c in enumerate(costs) if i != chosen)
+        return contenders[chosen], costs[chosen], other
+
+    def round(self, pool: CandidatePool) -> Refinement:
+        """Step 3 for one round: refine the new best distinct candidates of ``pool``, then
+        finish the best refined pose so far and its near-ties (fine score above
+        ``max_runner_up_ratio`` × its own) the same way; a near-tie that comes to the same
+        pose is none, and a flat object's outline may choose among the rest and settle
+        them when every other costs more than ``outline_settle_ratio`` × the chosen
+        (:meth:`_by_outline`)."""
+        m, o = self.ctx.model, self.ctx.options
+        distinct = distinct_ranked(pool.trials, m.symmetry, m.diameter_m, m.centre_object)
+        for t in self._picks(distinct):
+            self.refined_ids.add(id(t))
+            self.refined.append(self._refine(t))
+        self.refined.sort(key=lambda r: -r.score)
+        self._turn_upright()
+        best = self._winner()
+        won = self._finish(best)
+        near = [
+            r
+            for r in self.refined
+            if r is not best
+            and r.score > o.max_runner_up_ratio * best.score
+            and self._distinct(r.env_from_object, won.env_from_object)
+        ]
+        contenders = [won, *(self._finish(r) for r in near)]
+        ties = [c for c in contenders[1:] if self._distinct(c.env_from_object, won.env_from_object)]
+        by_outline = self._by_outline([won, *ties]) if ties else None
+        settled: tuple[float, float] | None = None
+        if by_outline is not None:
+            won, cost, rival_cost = by_outline
+            if rival_cost > o.outline_settle_ratio * cost:
+                settled = (cost, rival_cost)
+        finished = {id(c.refined): c for c in contenders}
+
+        def rival(r: Refined) -> bool:
+            if r is won.refined or (settled and id(r) in finished):
+                return False
+            pose = finished[id(r)].env_from_object if id(r) in finished else r.env_from_object
+            return self._distinct(pose, won.env_from_object)
+
+        fitness, rmse = won.evaluated or self.evaluate(won.env_from_object)
         return Refinement(
-            env_from_object=env_from_object,
-            score=best.score,
-            runner_up=runner_up,
+            env_from_object=won.env_from_object,
+            score=won.refined.score,
+            runner_up=next((r.score for r in self.refined if rival(r)), 0.0),
             fitness=fitness,
             inlier_rmse_m=rmse,
             inlier_distance_m=self.inlier_distance_m,
-            best=best.trial,
-            rotation_slack_deg=slack,
-            final_turn_deg=turn,
-            tipped_deg=tipped,
+            best=won.refined.trial,
+            rotation_slack_deg=won.rotation_slack_deg,
+            final_turn_deg=won.final_turn_deg,
+            tipped_deg=won.tipped_deg,
+            others=tuple(r for r in self.refined if r is not won.refined),
+            settled_by_outline=settled,
         )

@@ -46,7 +46,9 @@ class PoseResult:
     first — for a caller whose re-projection check rejects the chosen pose.
     ``rotation_slack_deg``: the rotation the scan's residual level hides
     (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`); ``final_turn_deg``: how far the
-    last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed)."""
+    last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed);
+    ``settled_by_outline``: (the chosen pose's outline cost per scan point, the best
+    near-tie's) when a flat object's outline settled its near-ties, else None."""
 
     env_from_object: Mat4
     fitness: float
@@ -68,12 +70,13 @@ class PoseResult:
     alternatives: tuple[Alternative, ...] = ()
     rotation_slack_deg: float = 0.0
     final_turn_deg: float = 0.0
+    settled_by_outline: tuple[float, float] | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:
         """The ``pose_quality`` object of the comparison contract: the verification's figures
         (``runner_up_ratio``: the best distinct pose's score over this one's) with the verdict."""
-        return {
+        out: dict[str, Any] = {
             "fitness": self.fitness,
             "inlier_rmse": self.inlier_rmse_m,
             "cluster_coverage": self.cluster_coverage,
@@ -84,3 +87,10 @@ class PoseResult:
             "ambiguous": self.ambiguous,
             "equivalent_poses": [p.tolist() for p in self.equivalent_poses],
         }
+        if self.settled_by_outline is not None:
+            cost, rival = self.settled_by_outline
+            out["settled_by_outline"] = {
+                "outline_cost": round(cost, 4),
+                "best_rival": round(rival, 4),
+            }
+        return out

@@ -198,6 +198,45 @@ def fit_top_view(
     return min(fits, key=lambda p: outline.cost(p, obj, floor, reach_m))
 
 
+def outline_costs(
+    model: OutlineModel,
+    poses: Sequence[Mat4],
+    support: NDArray[np.float64],
+    scene_env: Points,
+    support_env: Points,
+    reach_m: float,
+    window_m: float,
+) -> list[float]:
+    """For each of ``poses`` (env_from_object, each resting on the plane ``support`` =
+    [n, d], on any face), the :meth:`Outline.cost` of its outline seen along n per scan
+    point, on the same points for all: the (M, 3) ``scene_env`` points up to the tallest
+    outline's height (plus ``window_m``) within ``window_m`` of any outline, the (S, 3)
+    ``support_env`` points within ``window_m + reach_m``. Poses the scan cannot tell apart
+    cost alike; a pose on its mirrored face or turned away costs more. Empty ``poses``:
+    empty list; no point near any outline: all inf."""
+    n = support[:3]
+    outlines = [
+        Outline.create(model.points, p[:3, :3].T @ n, window_m + reach_m, reach_m) for p in poses
+    ]
+    if not outlines:
+        return []
+    height = scene_env @ n + support[3]
+    above = scene_env[height <= max(o.height_m for o in outlines) + window_m]
+    obj = np.zeros(len(above), dtype=bool)
+    floor = np.zeros(len(support_env), dtype=bool)
+    for outline, pose in zip(outlines, poses, strict=True):
+        obj |= _bilinear(outline.outside_m, outline.cells(pose, above), np.inf) <= window_m
+        near = _bilinear(outline.outside_m, outline.cells(pose, support_env), np.inf)
+        floor |= near <= window_m + reach_m
+    count = int(obj.sum())
+    if count == 0:
+        return [float("inf")] * len(poses)
+    return [
+        outline.cost(pose, above[obj], support_env[floor], reach_m) / count
+        for outline, pose in zip(outlines, poses, strict=True)
+    ]
+
+
 def _fit_pass(
     outline: Outline,
     pose: Mat4,

@@ -12,7 +12,7 @@ import numpy as np
 from tests.workers.pipeline.pose.test_final_fit import box_surface, errors, turn
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model.symmetry_group import NO_SYMMETRY
-from workers.pipeline.pose.top_view import Outline, fit_top_view
+from workers.pipeline.pose.top_view import Outline, fit_top_view, outline_costs
 
 FLOOR = np.array([0.0, 0.0, 1.0, 0.0])
 
@@ -120,3 +120,24 @@ def test_a_fit_that_would_turn_its_start_far_leaves_it_where_it_was() -> None:
     start = turn((0.0, 0.0, 45.0), (0.0, 0.0, 0.0)) @ true
     fitted = fit_top_view(model_of(pts), [start], FLOOR, scene, floor, 0.008, 0.1)
     assert np.array_equal(fitted, start)
+
+
+def test_the_outline_tells_a_flat_object_from_its_mirror_image() -> None:
+    # the L turned over onto its other face (about its long axis) fits the scan's faces
+    # almost as well, but its leg falls where the scan shows floor
+    pts, nrm = l_plate(9)
+    true = turn((0.0, 0.0, 40.0), (-0.2, 0.1, 0.0))
+    scene, floor = smeared_scan(pts, nrm, true, 10)
+    mirrored = true @ turn((180.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    mirrored[2, 3] -= transform_points(mirrored, pts)[:, 2].min()
+    turned = turn((0.0, 0.0, 2.0), (0.0, 0.0, 0.0)) @ true
+    shape = model_of(pts)
+    right, twice, mirror, off = outline_costs(
+        shape, [true, true, mirrored, turned], FLOOR, scene, floor, 0.008, 0.016
+    )
+    assert right == twice  # the same points for every pose
+    assert mirror > 2.0 * right
+    assert right < off < mirror
+    assert outline_costs(shape, [], FLOOR, scene, floor, 0.008, 0.016) == []
+    far = np.random.default_rng(11).uniform(0.5, 0.6, (100, 3))
+    assert outline_costs(shape, [true], FLOOR, far, floor, 0.008, 0.016) == [float("inf")]

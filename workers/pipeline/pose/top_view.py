@@ -5,8 +5,9 @@ face faces up and says nothing about the turn, and stereo smears its low sides i
 floor. Seen from above, its outline still holds the turn: the scan's points of the object
 fall inside the model's outline, the support's points seen around it outside.
 :func:`fit_top_view` turns the pose about the plane's normal and shifts it across the plane
-to agree with both. All points are (N, 3) float64 metres; poses are 4×4
-``env_from_object``.
+to agree with both; :func:`outline_costs` compares poses resting on other faces (a flat
+object turned over shows its outline's mirror image). All points are (N, 3) float64
+metres; poses are 4×4 ``env_from_object``.
 """
 
 from __future__ import annotations

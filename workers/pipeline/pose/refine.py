@@ -462,12 +462,12 @@ class Refiner:
             won, cost, rival_cost = by_outline
             if rival_cost > o.outline_settle_ratio * cost:
                 settled = (cost, rival_cost)
-        finished = {id(c.refined): c for c in contenders}
+        contending = {id(c.refined): c for c in contenders}
 
         def rival(r: Refined) -> bool:
-            if r is won.refined or (settled and id(r) in finished):
+            if r is won.refined or (settled and id(r) in contending):
                 return False
-            pose = finished[id(r)].env_from_object if id(r) in finished else r.env_from_object
+            pose = contending[id(r)].env_from_object if id(r) in contending else r.env_from_object
             return self._distinct(pose, won.env_from_object)
 
         fitness, rmse = won.evaluated or self.evaluate(won.env_from_object)

@@ -172,13 +172,9 @@ def fit_top_view(
     height = scene_env @ n + support[3]
     above = scene_env[height <= outline.height_m + window_m]
 
-    def near(pose: Mat4, points: Points, within_m: float) -> NDArray[np.bool_]:
-        return _bilinear(outline.outside_m, outline.cells(pose, points), np.inf) <= within_m
-
     def chosen(poses: Sequence[Mat4]) -> tuple[Points, Points]:
-        # the support's points only ever push the outline off them: all on the grid count
-        obj = np.logical_or.reduce([near(p, above, window_m) for p in poses])
-        floor = np.logical_or.reduce([near(p, support_env, window_m + reach_m) for p in poses])
+        placed = [(outline, p) for p in poses]
+        obj, floor = _near_outlines(placed, above, support_env, reach_m, window_m)
         return above[obj], support_env[floor]
 
     fits = []
@@ -223,19 +219,35 @@ def outline_costs(
         return []
     height = scene_env @ n + support[3]
     above = scene_env[height <= max(o.height_m for o in outlines) + window_m]
-    obj = np.zeros(len(above), dtype=bool)
-    floor = np.zeros(len(support_env), dtype=bool)
-    for outline, pose in zip(outlines, poses, strict=True):
-        obj |= _bilinear(outline.outside_m, outline.cells(pose, above), np.inf) <= window_m
-        near = _bilinear(outline.outside_m, outline.cells(pose, support_env), np.inf)
-        floor |= near <= window_m + reach_m
+    placed = list(zip(outlines, poses, strict=True))
+    obj, floor = _near_outlines(placed, above, support_env, reach_m, window_m)
     count = int(obj.sum())
     if count == 0:
         return [float("inf")] * len(poses)
     return [
         outline.cost(pose, above[obj], support_env[floor], reach_m) / count
-        for outline, pose in zip(outlines, poses, strict=True)
+        for outline, pose in placed
     ]
+
+
+def _near_outlines(
+    placed: Sequence[tuple[Outline, Mat4]],
+    above: Points,
+    support_env: Points,
+    reach_m: float,
+    window_m: float,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Masks of the (M, 3) ``above`` points within ``window_m`` of any of the outlines
+    placed at their poses, and of the (S, 3) ``support_env`` points within ``window_m +
+    reach_m``: the points a fit or a comparison of those poses weighs (the support's
+    points only ever push an outline off them, so all near it count)."""
+    obj = np.zeros(len(above), dtype=bool)
+    floor = np.zeros(len(support_env), dtype=bool)
+    for outline, pose in placed:
+        obj |= _bilinear(outline.outside_m, outline.cells(pose, above), np.inf) <= window_m
+        near = _bilinear(outline.outside_m, outline.cells(pose, support_env), np.inf)
+        floor |= near <= window_m + reach_m
+    return obj, floor
 
 
 def _fit_pass(

@@ -124,10 +124,21 @@ class Outline:
     ) -> float:
         """Σ of squared distances (capped at ``cap_m``, in units of it) of the (M, 3) object
         points outside the outline and of the (S, 3) support points inside its foot."""
-        return _capped_sum(
-            _bilinear(self.outside_m, self.cells(env_from_object, object_env), cap_m),
-            _bilinear(self.inside_m, self.cells(env_from_object, support_env), 0.0),
+        return self.cost_at(
+            self.cells(env_from_object, object_env),
+            self.cells(env_from_object, support_env),
             cap_m,
+        )
+
+    def cost_at(
+        self, object_cells: NDArray[np.float64], support_cells: NDArray[np.float64], cap_m: float
+    ) -> float:
+        """:meth:`cost` of points already on the grid: (2, M) and (2, S) cell coordinates."""
+        outside = _bilinear(self.outside_m, object_cells, cap_m)
+        inside = _bilinear(self.inside_m, support_cells, 0.0)
+        return (
+            float(np.sum(np.minimum(outside, cap_m) ** 2) + np.sum(np.minimum(inside, cap_m) ** 2))
+            / cap_m**2
         )
 
 
@@ -277,11 +288,7 @@ def _fit_pass(
         return (back @ (flat - (shifts @ x[1:])[:, None])) / outline.cell_m + offset[:, None]
 
     def cost(x: NDArray[np.float64]) -> float:
-        return _capped_sum(
-            _bilinear(outline.outside_m, cells(obj_flat, x), reach_m),
-            _bilinear(outline.inside_m, cells(floor_flat, x), 0.0),
-            reach_m,
-        )
+        return outline.cost_at(cells(obj_flat, x), cells(floor_flat, x), reach_m)
 
     best_x, best = np.zeros(3), cost(np.zeros(3))
     for turn_deg in START_TURNS_DEG if first else (0.0,):
@@ -294,14 +301,6 @@ def _fit_pass(
         if r.fun < best:
             best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
     return _turned(pose, normal, centre, best_x)
-
-
-def _capped_sum(outside: NDArray[np.float64], inside: NDArray[np.float64], cap_m: float) -> float:
-    """Σ of the squared distances, each capped at ``cap_m``, in units of it."""
-    return (
-        float(np.sum(np.minimum(outside, cap_m) ** 2) + np.sum(np.minimum(inside, cap_m) ** 2))
-        / cap_m**2
-    )
 
 
 def _bilinear(

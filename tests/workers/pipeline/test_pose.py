@@ -417,10 +417,11 @@ def test_cluster_coverage_tolerates_scan_noise_not_other_things(
     options = POSE_PRESETS["default"]
     surface = model.points[rng.choice(len(model.points), 3000, replace=False)]
     noisy = surface + rng.normal(scale=0.003, size=surface.shape)
-    assert cluster_coverage(noisy, model.points, model.voxel_m, options) > 0.95
+    identity = np.eye(4)
+    assert cluster_coverage(noisy, model.points, identity, model.voxel_m, options) > 0.95
     blob = rng.normal(scale=0.01, size=(2000, 3)) + model.points.max(axis=0) + 0.03
     mixed = np.vstack([noisy, blob])
-    assert cluster_coverage(mixed, model.points, model.voxel_m, options) < 0.65
+    assert cluster_coverage(mixed, model.points, identity, model.voxel_m, options) < 0.65
 
 
 def test_scene_without_normals(shared_data: Path, ycb_models: dict[str, PreparedModel]) -> None:

@@ -18,7 +18,7 @@ import pytest
 
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.visibility import DepthMap, render_depth
-from workers.pipeline.geometry import make_rigid, transform_points
+from workers.pipeline.geometry import make_rigid, rotation_about_unit_axis, transform_points
 from workers.pipeline.model.symmetry_group import SymmetrySpec
 from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, PoseResult, Trial, posing
 from workers.pipeline.pose.crop import SceneCloud
@@ -26,6 +26,8 @@ from workers.pipeline.pose.refine import Refinement
 from workers.pipeline.pose.result import Alternative
 from workers.pipeline.pose.verify import (
     ReprojectionOptions,
+    cluster_coverage,
+    inside_hull,
     reprojection_check,
     verify_fit,
     visible_fitness,
@@ -146,6 +148,25 @@ def refinement(
         rotation_slack_deg=slack_deg,
         final_turn_deg=turn_deg,
     )
+
+
+def test_cluster_coverage_counts_what_lies_inside_the_object() -> None:
+    """Stereo closes a hollow object's opening with points in its cavity: inside the posed
+    model's convex hull they are explained; the same points beside it are not. An open
+    box 0.2 × 0.1 × 0.1 m posed 1 m away and turned, voxel 5 mm."""
+    o, v = POSE_PRESETS["default"], 0.005
+    walls = box_model(4000)
+    walls = walls[walls[:, 2] < 0.05]  # no top: a hollow tray
+    pose = make_rigid(rotation_about_unit_axis([0.0, 0.0, 1.0], np.radians(30.0)), (1.0, 0.5, 0.0))
+    rng = np.random.default_rng(1)
+    cavity = rng.uniform([-0.08, -0.03, -0.03], [0.08, 0.03, 0.04], size=(1000, 3))
+    seen = transform_points(pose, walls[:3000])
+    inside = transform_points(pose, cavity)
+    beside = transform_points(pose, cavity + np.array([0.3, 0.0, 0.0]))
+    assert cluster_coverage(np.vstack([seen, inside]), walls, pose, v, o) == 1.0
+    assert cluster_coverage(np.vstack([seen, beside]), walls, pose, v, o) == 0.75
+    assert inside_hull(walls, cavity).all()
+    assert not inside_hull(walls * np.array([1.0, 1.0, 0.0]), cavity).any()  # no volume
 
 
 def test_verify_fit_names_each_failed_figure() -> None:

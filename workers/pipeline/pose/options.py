@@ -67,7 +67,8 @@ class PoseOptions:
     coverage_voxels: float = 0.5
     # largest tolerance of cluster coverage, voxels (and at most max_inlier_distance_m)
     max_coverage_voxels: float = 1.5
-    # least share of cluster points the posed model explains for ``verified``
+    # least share of cluster points the posed model explains (near its surface or inside
+    # its convex hull) for ``verified``
     min_cluster_coverage: float = 0.85
     # colour correlation margin that picks a symmetric object's equivalent pose (a label)
     colour_margin: float = 0.02

@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
+from numpy.typing import NDArray
+from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from workers.pipeline.compare.data import Camera, FloatArray
 from workers.pipeline.compare.identify import iou_matrix, yolo_to_boxes
@@ -56,17 +57,38 @@ class FitVerification:
         return not self.rejections
 
 
-def cluster_coverage(cluster: Points, posed_model: Points, v: float, o: PoseOptions) -> float:
-    """Share of (K, 3) cluster points within a noise-scaled tolerance of the (N, 3) posed
-    model points: 3σ of the cluster's own scatter about the model (σ = 1.4826 × the median
-    distance), clipped to ``coverage_voxels·v`` … ``max_coverage_voxels·v`` and
-    ``max_inlier_distance_m`` — a reconstructed cloud scatters 2-4 mm about the true
-    surface, and a cluster that includes something else leaves it uncovered by centimetres."""
+def cluster_coverage(
+    cluster: Points, model_points: Points, env_from_object: Mat4, v: float, o: PoseOptions
+) -> float:
+    """Share of (K, 3) cluster points (environment frame) the model posed by 4×4
+    ``env_from_object`` explains: within a noise-scaled tolerance of its (N, 3) points
+    (object frame), or inside their convex hull. The tolerance is 3σ of the cluster's own
+    scatter about the model (σ = 1.4826 × the median distance), clipped to
+    ``coverage_voxels·v`` … ``max_coverage_voxels·v`` and ``max_inlier_distance_m`` — a
+    reconstructed cloud scatters 2-4 mm about the true surface, and a cluster that includes
+    something else leaves it uncovered by centimetres. Inside the hull lie stereo's points
+    across a hollow object's opening and in a flat one's gaps, not another object."""
+    posed = transform_points(env_from_object, model_points)
     hi = min(o.max_coverage_voxels * v, o.max_inlier_distance_m)
-    d, _ = cKDTree(posed_model).query(cluster, distance_upper_bound=hi)
+    d, _ = cKDTree(posed).query(cluster, distance_upper_bound=hi)
     d_med = float(np.median(np.where(np.isfinite(d), d, hi)))
     tol = float(np.clip(3.0 * 1.4826 * d_med, min(o.coverage_voxels * v, hi), hi))
-    return float(np.mean(d <= tol))
+    covered = d <= tol
+    if not covered.all():
+        local = transform_points(np.linalg.inv(env_from_object), cluster[~covered])
+        covered[~covered] = inside_hull(model_points, local)
+    return float(np.mean(covered))
+
+
+def inside_hull(hull_points: Points, points: Points) -> NDArray[np.bool_]:
+    """(K,) whether each of the (K, 3) ``points`` lies inside the convex hull of the
+    (N, 3) ``hull_points`` (same frame); all False when those span no volume."""
+    try:
+        planes = ConvexHull(hull_points).equations
+    except QhullError:
+        return np.zeros(len(points), dtype=bool)
+    inside: NDArray[np.bool_] = np.all(points @ planes[:, :3].T + planes[:, 3] <= 0.0, axis=1)
+    return inside
 
 
 def verify_fit(
@@ -83,8 +105,7 @@ def verify_fit(
     (N, 3) object frame; ``cluster``: (K, 3) environment frame or None."""
     coverage: float | None = None
     if cluster is not None:
-        posed = transform_points(fit.env_from_object, model_points)
-        coverage = cluster_coverage(cluster, posed, v, o)
+        coverage = cluster_coverage(cluster, model_points, fit.env_from_object, v, o)
     fitness = fit.fitness
     rejections: list[str] = []
     if fitness < o.min_fitness or fitness == 0.0:

@@ -163,6 +163,7 @@ QUALITY_FIGURES = (
     "settled_by_visibility",
     "settled_by_reprojection",
     "settled_by_outline",
+    "photo_edges",
     "reprojection",
 )
 

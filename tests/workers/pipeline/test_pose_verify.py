@@ -22,6 +22,7 @@ from workers.pipeline.geometry import make_rigid, rotation_about_unit_axis, tran
 from workers.pipeline.model.symmetry_group import SymmetrySpec
 from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, PoseResult, Trial, posing
 from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.photo_edges import CaptureSight
 from workers.pipeline.pose.refine import Refinement
 from workers.pipeline.pose.result import Alternative
 from workers.pipeline.pose.verify import (
@@ -294,7 +295,8 @@ def test_what_the_cameras_saw_settles_a_near_tie_for_the_pose_steps_choice(
     def posed(chosen: np.ndarray, rival: np.ndarray, depth_maps: Any) -> dict[str, Any]:
         monkeypatch.setattr(posing, "estimate_pose", lambda *a, **k: near_tie(chosen, rival, 9))
         cloud = SceneCloud.create(scan)
-        return posing.pose_change(change, model, cloud, after, CLASS_ID, depth_maps, options)
+        sight = CaptureSight(after, depth_maps)
+        return posing.pose_change(change, model, cloud, sight, CLASS_ID, options)
 
     kept = posed(true, turned, maps)
     quality = kept["pose_quality"]

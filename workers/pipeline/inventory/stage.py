@@ -37,6 +37,7 @@ from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptio
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.photo_edges import CaptureSight
 from workers.pipeline.pose.posing import pose_change
 
 FloatArray = NDArray[np.float64]
@@ -290,6 +291,7 @@ def _pose_segments(
     named += [(c, name) for c, name in weak.items()]
     pose_options = options.pose_options()
     scene = SceneCloud.create(capture.points_env, colors=capture.colors) if named else None
+    sight = CaptureSight(capture, seg.maps)
     prepared: dict[str, PreparedModel] = {}
     found: list[InventoryObject] = []
     rejected: list[dict[str, Any]] = []
@@ -303,9 +305,7 @@ def _pose_segments(
                 prepared[name] = load_model(name)
             change = Change(f"segment-{cluster.id}", "added", name, None, cluster)
             class_id = list(classes).index(name)
-            pose = pose_change(
-                change, prepared[name], scene, capture, class_id, seg.maps, pose_options
-            )
+            pose = pose_change(change, prepared[name], scene, sight, class_id, pose_options)
         quality = pose.get("pose_quality")
         passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
         reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]

@@ -85,13 +85,22 @@ class PoseOptions:
     # degrees; tilted more, something holds it; ≤ rest_max_tilt_deg disables
     max_set_down_tilt_deg: float = 20.0
     # an object resting on its support at most this tall, × its diameter, takes its turn on
-    # it and shift across it from its outline seen from above (top_view.py); 0 disables
+    # it and shift across it from its outline seen from above (top_view.py), then from its
+    # photos' edges (photo_edges.py); 0 disables both
     top_view_max_height_ratio: float = 0.5
     # cap on the outline distances of that fit, voxels; ≥ the scan's noise at the outline
     top_view_reach_voxels: float = 2.0
     # the scan's points within this of the outline take part in that fit, voxels; raise
     # when flat poses start further off (the points are chosen again around the fit)
     top_view_window_voxels: float = 4.0
+    # cap on the pixel distance from its silhouette to a photo's edge; ≥ the pose step's
+    # error seen in the photos, ≤ the spacing of the support's own texture edges
+    photo_edges_cap_px: float = 4.0
+    # the most photos that fit takes (those showing the object largest)
+    photo_edges_max_views: int = 12
+    # the photos' fit turning the pose by at most this, degrees, confirms the pose step's
+    # last fit where it and the ICP disagree (max_final_turn_deg); lower confirms fewer
+    photo_edges_confirm_deg: float = 1.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
     max_rotation_slack_deg: float = 20.0

@@ -9,7 +9,7 @@ storage here.
 from __future__ import annotations
 
 from collections.abc import Callable, Collection, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -22,12 +22,15 @@ from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import PipelineError
 from workers.pipeline.geometry import Mat4, transform_points
 from workers.pipeline.model import PreparedModel
+from workers.pipeline.model.symmetry_group import symmetric_pose_error
 from workers.pipeline.pose.candidates import distinct_pose, upright
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
+from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
 from workers.pipeline.pose.verify import (
+    FINAL_TURN_REASON,
     RUNNER_UP_REASON,
     ReprojectionCheck,
     reprojection_check,
@@ -85,13 +88,14 @@ def pose_change(
     change: Change,
     model: PreparedModel,
     scene: SceneCloud,
-    after: CaptureData,
+    sight: CaptureSight,
     class_id: int,
-    depth_maps: Sequence[DepthMap] | None,
     options: PoseOptions,
 ) -> dict[str, Any]:
-    """Pose, quality and centre of one change; a failed registration is reported on the
-    change (``verified: false`` with the reason), never dropped."""
+    """Pose, quality and centre of one change seen by the after capture's ``sight``; a
+    failed registration is reported on the change (``verified: false`` with the reason),
+    never dropped."""
+    after, depth_maps = sight.capture, sight.depth_maps
     try:
         pose = estimate_pose(
             model,
@@ -120,13 +124,10 @@ def pose_change(
     quality = pose.quality_json()
     quality["chosen_by"] = pose.chosen_by
     reasons = list(pose.rejections)
-    if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
-        # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
-        # bracket turned end for end, a hammer on either face). What the cameras saw of each
-        # pose (visible fitness) settles the tie when it clearly prefers the pose step's
-        # choice; else the detector's boxes choose among the near-ties that stand the same
-        # way up (the pose step chose that), settling the tie when the choice re-projects
-        # clearly better than every near-tie.
+    if _tied(reasons):
+        # A near-symmetric object's near-ties: what the cameras saw (visible fitness)
+        # settles when it clearly prefers the choice; else the detector's boxes choose among
+        # those the same way up, settling when the choice re-projects clearly better.
         candidates = [chosen, *_rivals(pose, model, options)]
         checks = [check, *(check_of(alt) for alt in candidates[1:])]
         by_sight = _tiebreak(candidates, [seen_of(c) for c in candidates], model)
@@ -149,15 +150,68 @@ def pose_change(
                     "mean_iou": round(by_boxes.value, 4),
                     "best_rival_iou": round(by_boxes.rival, 4),
                 }
+    moved = _on_photo_edges(model, chosen, sight, options)
+    if moved is not None:
+        chosen, quality["photo_edges"], settled, turned = moved
+        quality.update(_fit_figures(model, scene, chosen, pose.inlier_distance_m))
+        reasons = [r for r in reasons if not r.startswith(settled)] + turned
+        check = check_of(chosen)
     quality["visible_fitness"] = seen_of(chosen)
     reasons += check.rejections()
     quality.update(verified=not reasons, reasons=reasons, reprojection=check.to_json())
     centre = transform_points(chosen, model.centre_object[None, :])[0]
-    return {
-        "pose": chosen.tolist(),
-        "pose_quality": quality,
-        "centroid_env": centre.tolist(),
+    return {"pose": chosen.tolist(), "pose_quality": quality, "centroid_env": centre.tolist()}
+
+
+def _tied(reasons: Sequence[str]) -> bool:
+    """Whether a distinct pose scoring close to the chosen one is among the ``reasons``."""
+    return any(r.startswith(RUNNER_UP_REASON) for r in reasons)
+
+
+def _on_photo_edges(
+    model: PreparedModel, env_from_object: Mat4, sight: CaptureSight, options: PoseOptions
+) -> tuple[Mat4, dict[str, Any], tuple[str, ...], list[str]] | None:
+    """A flat object's pose (at most ``top_view_max_height_ratio`` × its diameter tall
+    along the environment's up) turned on its support and shifted across it onto the
+    photos' edges (:func:`~workers.pipeline.pose.photo_edges.fit_photo_edges`), with its
+    figures (photos used, mean pixels to the edges before and after, the turn, degrees
+    modulo symmetry, and shift, metres, from ``env_from_object``); how the reasons the
+    photos settle begin (the last fits' disagreement on the turn when the photos turned
+    the pose by at most ``photo_edges_confirm_deg``: they confirm the last fit; near-ties
+    they do not settle: a pose on the wrong face can fit the photos' edges as closely);
+    and the reason it is not verified when that turn exceeds ``max_final_turn_deg``
+    (the scan and the photos disagree). A fit that lowers no cost keeps
+    ``env_from_object``. None: not flat, the option off, or no photo shows all of it."""
+    ratio = options.top_view_max_height_ratio
+    heights = model.points @ (env_from_object[:3, :3].T @ UP_ENV)
+    if ratio <= 0 or float(np.ptp(heights)) > ratio * model.diameter_m:
+        return None
+    fit = fit_photo_edges(
+        model,
+        env_from_object,
+        UP_ENV,
+        sight,
+        options.photo_edges_cap_px,
+        options.photo_edges_max_views,
+    )
+    if fit.views == 0:
+        return None
+    if not fit.cost < fit.start_cost:
+        fit = replace(fit, env_from_object=env_from_object, cost=fit.start_cost)
+    shift, turn = symmetric_pose_error(
+        fit.env_from_object, env_from_object, model.symmetry, model.centre_object
+    )
+    figures = {
+        "views": fit.views,
+        "cost_px": round(fit.cost, 4),
+        "start_cost_px": round(fit.start_cost, 4),
+        "turn_deg": round(turn, 3),
+        "shift_m": round(shift, 5),
     }
+    settled = (FINAL_TURN_REASON,) if turn <= options.photo_edges_confirm_deg else ()
+    limit = options.max_final_turn_deg
+    turned = [f"the photos' edges turned the pose by {turn:.1f}° (> {limit:.1f}°)"]
+    return fit.env_from_object, figures, settled, turned if turn > limit else []
 
 
 @dataclass(frozen=True)
@@ -250,7 +304,7 @@ def pose_changes(
     options = pose_options_from_json(pose_options)
     posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in available]
     scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
-    depth_maps = render_depth_maps(after, compare_options) if posed else None
+    sight = CaptureSight(after, render_depth_maps(after, compare_options) if posed else None)
     prepared: dict[str, PreparedModel] = {}
     records: list[dict[str, Any]] = []
     for i, change in enumerate(result.changes):
@@ -266,9 +320,8 @@ def pose_changes(
                     change,
                     prepared[name],
                     scene,
-                    after,
+                    sight,
                     list(classes).index(name),
-                    depth_maps,
                     options,
                 )
             )

@@ -12,7 +12,7 @@ metres; poses are 4×4 ``env_from_object``.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -142,20 +142,39 @@ class Outline:
         )
 
 
-def _turned(
+def turned_in_plane(
     env_from_object: Mat4,
     normal: NDArray[np.float64],
     centre_env: NDArray[np.float64],
     x: NDArray[np.float64],
 ) -> Mat4:
-    """``env_from_object`` turned by ``x[0]`` radians about ``normal`` through
-    ``centre_env`` and shifted by ``x[1:]`` along the plane's in-plane axes."""
+    """``env_from_object`` turned by ``x[0]`` radians about the unit ``normal`` through
+    ``centre_env`` and shifted by ``x[1:]`` metres along the plane's in-plane axes."""
     a, b = perpendicular_pair(normal)
     turn = rotation_about_unit_axis(normal, float(x[0]))
     out = np.eye(4)
     out[:3, :3] = turn @ env_from_object[:3, :3]
     out[:3, 3] = turn @ (env_from_object[:3, 3] - centre_env) + centre_env + x[1] * a + x[2] * b
     return out
+
+
+def least_turn_and_shift(
+    cost: Callable[[NDArray[np.float64]], float], starts_deg: Sequence[float], ftol: float
+) -> NDArray[np.float64]:
+    """The (3,) turn (radians) and shift (metres) of :func:`turned_in_plane` of least
+    ``cost``: zero, or Powell's minimum from each turn of ``starts_deg`` (degrees) when it
+    costs less (``ftol``: Powell's relative tolerance on the cost)."""
+    best_x, best = np.zeros(3), cost(np.zeros(3))
+    for turn_deg in starts_deg:
+        r = minimize(
+            cost,
+            np.array([np.radians(turn_deg), 0.0, 0.0]),
+            method="Powell",
+            options={"xtol": 1e-5, "ftol": ftol},
+        )
+        if r.fun < best:
+            best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
+    return best_x
 
 
 def fit_top_view(
@@ -290,17 +309,8 @@ def _fit_pass(
     def cost(x: NDArray[np.float64]) -> float:
         return outline.cost_at(cells(obj_flat, x), cells(floor_flat, x), reach_m)
 
-    best_x, best = np.zeros(3), cost(np.zeros(3))
-    for turn_deg in START_TURNS_DEG if first else (0.0,):
-        r = minimize(
-            cost,
-            np.array([np.radians(turn_deg), 0.0, 0.0]),
-            method="Powell",
-            options={"xtol": 1e-5, "ftol": 1e-4},
-        )
-        if r.fun < best:
-            best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
-    return _turned(pose, normal, centre, best_x)
+    best_x = least_turn_and_shift(cost, START_TURNS_DEG if first else (0.0,), ftol=1e-4)
+    return turned_in_plane(pose, normal, centre, best_x)
 
 
 def _bilinear(

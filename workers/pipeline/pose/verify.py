@@ -41,6 +41,8 @@ from workers.pipeline.pose.refine import Refinement
 
 #: the rejection a near-tie in 3D gets; the caller may settle it with 2D evidence
 RUNNER_UP_REASON = "a distinct pose scores"
+#: how the reason that the pose step's last fits disagree on the turn begins
+FINAL_TURN_REASON = "the last fit turned the ICP pose by"
 
 
 @dataclass(frozen=True)
@@ -120,8 +122,7 @@ def verify_fit(
         )
     if fit.final_turn_deg > o.max_final_turn_deg:
         rejections.append(
-            f"the last fit turned the ICP pose by {fit.final_turn_deg:.1f}° "
-            f"(> {o.max_final_turn_deg:.1f}°)"
+            f"{FINAL_TURN_REASON} {fit.final_turn_deg:.1f}° (> {o.max_final_turn_deg:.1f}°)"
         )
     if fit.tipped_deg > 0.0:
         rejections.append(

@@ -1,0 +1,209 @@
+"""A flat object's turn and shift from the photos' edges (workers/pipeline/pose/photo_edges.py):
+an L-shaped plate on the floor photographed from a ring of cameras, its pose started 4°
+and 3 mm off."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import cv2
+import numpy as np
+import pytest
+
+from tests.workers.pipeline.test_pose_verify import near_tie
+from workers.pipeline.compare.data import Camera, CaptureData
+from workers.pipeline.compare.visibility import DepthMap
+from workers.pipeline.geometry import make_rigid, rotation_about_unit_axis, transform_points
+from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
+from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, posing
+from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
+from workers.pipeline.pose.verify import FINAL_TURN_REASON
+
+UP = np.array([0.0, 0.0, 1.0])
+K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
+#: the plate's two bars (min corner, max corner), object frame, metres: 12 × 3 cm and
+#: 3 × 8 cm, 1.5 cm thick, resting on z = 0
+BARS = (((-0.06, -0.04, 0.0), (0.06, -0.01, 0.015)), ((-0.06, -0.01, 0.0), (-0.03, 0.04, 0.015)))
+
+
+@dataclass(frozen=True)
+class Plate:
+    """(N, 3) surface samples of the L-shaped plate, their (N, 3) outward normals and the
+    (3,) centre, object frame."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    centre_object: np.ndarray
+
+
+def plate(spacing: float = 0.002) -> Plate:
+    """The plate's outer surface sampled every ``spacing`` metres (faces shared by the two
+    bars left out)."""
+    points, normals = [], []
+    for lo, hi in BARS:
+        lo_a, hi_a = np.asarray(lo), np.asarray(hi)
+        for axis in range(3):
+            for side, bound in ((-1.0, lo_a), (1.0, hi_a)):
+                u, v = [a for a in range(3) if a != axis]
+                gu = np.arange(lo_a[u], hi_a[u] + 1e-9, spacing)
+                gv = np.arange(lo_a[v], hi_a[v] + 1e-9, spacing)
+                uu, vv = np.meshgrid(gu, gv)
+                face = np.zeros((uu.size, 3))
+                face[:, u], face[:, v], face[:, axis] = uu.ravel(), vv.ravel(), bound[axis]
+                normal = np.zeros(3)
+                normal[axis] = side
+                points.append(face)
+                normals.append(np.tile(normal, (len(face), 1)))
+    p, n = np.vstack(points), np.vstack(normals)
+    # the faces where the bars meet are inside the L: keep what no bar's interior holds
+    inner = np.zeros(len(p), dtype=bool)
+    for lo, hi in BARS:
+        inner |= np.all((p > np.asarray(lo) + 1e-6) & (p < np.asarray(hi) - 1e-6), axis=1)
+    shared = (np.abs(p[:, 1] + 0.01) < 1e-9) & (p[:, 0] > -0.06 + 1e-9) & (p[:, 0] < -0.03 - 1e-9)
+    keep = ~inner & ~shared
+    return Plate(p[keep], n[keep], p[keep].mean(axis=0))
+
+
+def ring_cameras(n: int = 8, radius: float = 0.6, height: float = 0.6) -> list[Camera]:
+    """``n`` 640 × 480 cameras on a ring about the origin, each looking at it."""
+    cams = []
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        eye = np.array([radius * np.cos(a), radius * np.sin(a), height])
+        z = -eye / np.linalg.norm(eye)
+        x = np.cross(z, UP)
+        x /= np.linalg.norm(x)
+        y = np.cross(z, x)
+        env_from_cam = make_rigid(np.column_stack([x, y, z]), eye)
+        cams.append(Camera(f"view_{i:03d}.png", K, 640, 480, np.linalg.inv(env_from_cam)))
+    return cams
+
+
+def photograph(folder: Path, model: Plate, env_from_object: np.ndarray) -> CaptureData:
+    """Photos of the posed plate (light grey on a dark floor) written under ``folder``."""
+    posed = transform_points(env_from_object, model.points)
+    cams, photos = ring_cameras(), {}
+    for cam in cams:
+        p = transform_points(cam.cam_from_env, posed)
+        uv = np.round(p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]).astype(int)
+        mask = np.zeros((cam.height, cam.width), dtype=np.uint8)
+        mask[uv[:, 1], uv[:, 0]] = 255
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((7, 7), dtype=np.uint8))
+        image = np.where(mask[..., None] > 0, 200, 60).astype(np.uint8).repeat(3, axis=2)
+        photos[cam.name] = folder / cam.name
+        cv2.imwrite(str(photos[cam.name]), image)
+    return CaptureData(points_env=posed, cameras=tuple(cams), photos=photos)
+
+
+def open_depth(capture: CaptureData) -> list[DepthMap]:
+    """Depth maps that hide nothing."""
+    return [
+        DepthMap(c, np.full((c.height, c.width), np.inf, dtype=np.float32), 1.0)
+        for c in capture.cameras
+    ]
+
+
+def turned(env_from_object: np.ndarray, deg: float, shift: tuple[float, float]) -> np.ndarray:
+    """The pose turned by ``deg`` about the vertical through its origin and shifted."""
+    out = env_from_object.copy()
+    out[:3, :3] = rotation_about_unit_axis(UP, np.radians(deg)) @ out[:3, :3]
+    out[:2, 3] += shift
+    return out
+
+
+@pytest.fixture(scope="module")
+def setting(tmp_path_factory: pytest.TempPathFactory) -> tuple[Plate, np.ndarray, CaptureData]:
+    model = plate()
+    true = make_rigid(rotation_about_unit_axis(UP, np.radians(30.0)), (0.02, -0.01, 0.0))
+    return model, true, photograph(tmp_path_factory.mktemp("photos"), model, true)
+
+
+def test_the_fit_turns_and_shifts_a_pose_onto_the_photos_edges(
+    setting: tuple[Plate, np.ndarray, CaptureData],
+) -> None:
+    model, true, capture = setting
+    start = turned(true, 4.0, (0.003, -0.002))
+    fit = fit_photo_edges(model, start, UP, CaptureSight(capture, open_depth(capture)), 4.0, 12)
+    shift, turn = symmetric_pose_error(fit.env_from_object, true, SymmetrySpec())
+    assert fit.views == 8
+    assert turn < 0.5 and shift < 0.001, (turn, shift)
+    assert fit.cost < fit.start_cost
+    assert fit.env_from_object[2, 3] == pytest.approx(true[2, 3])  # it stays on its support
+
+
+def test_photos_that_do_not_show_all_of_it_take_no_part(
+    setting: tuple[Plate, np.ndarray, CaptureData],
+) -> None:
+    model, true, capture = setting
+    start = turned(true, 4.0, (0.003, -0.002))
+    hidden = [
+        DepthMap(c, np.full((c.height, c.width), 0.1, dtype=np.float32), 1.0)
+        for c in capture.cameras
+    ]
+    fit = fit_photo_edges(model, start, UP, CaptureSight(capture, hidden), 4.0, 12)
+    assert fit.views == 0 and fit.env_from_object is start
+    without_photos = CaptureData(points_env=capture.points_env, cameras=capture.cameras)
+    sight = CaptureSight(without_photos, open_depth(capture))
+    assert fit_photo_edges(model, start, UP, sight, 4.0, 12).views == 0
+
+
+def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
+    setting: tuple[Plate, np.ndarray, CaptureData], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The pose step chose the plate 0.5° off, its last fits disagreeing by more than
+    ``max_final_turn_deg``, and the plate turned over scores almost as well. The photos
+    turn the choice back by under ``photo_edges_confirm_deg``: they confirm the last fit,
+    whose disagreement no longer rejects the pose; the near-tie stays (a pose on another
+    face can fit the edges as closely). Started 4° off, the photos turn it back too, by
+    more than ``max_final_turn_deg``: the scan and the photos disagree, unverified. Without
+    photos the pose step's pose stands."""
+    model, true, capture = setting
+    flat_model: Any = SimpleNamespace(
+        points=model.points,
+        normals=model.normals,
+        centre_object=model.centre_object,
+        up_object=UP,
+        symmetry=SymmetrySpec(),
+        diameter_m=0.13,
+    )
+    over = make_rigid(rotation_about_unit_axis(np.array([1.0, 0.0, 0.0]), np.pi), (0, 0, 0.015))
+    change: Any = SimpleNamespace(
+        cluster=SimpleNamespace(points_env=capture.points_env), previous_env_from_object=None
+    )
+    # the scan holds both near-ties: what the cameras saw settles nothing
+    both = np.vstack([capture.points_env, transform_points(true @ over, model.points)])
+    cloud = SceneCloud.create(both)
+    options = POSE_PRESETS["default"]
+    disagree = f"{FINAL_TURN_REASON} 4.2° (> 3.0°)"
+
+    def posed(start: np.ndarray, sight: CaptureSight) -> dict[str, Any]:
+        result = replace(
+            near_tie(start, true @ over, 9),
+            rejections=(f"{RUNNER_UP_REASON} 0.95 of the best (> 0.85)", disagree),
+        )
+        monkeypatch.setattr(posing, "estimate_pose", lambda *a, **k: result)
+        return posing.pose_change(change, flat_model, cloud, sight, 0, options)
+
+    sight = CaptureSight(capture, open_depth(capture))
+    for off_deg, confirmed in ((0.5, True), (4.0, False)):
+        out = posed(turned(true, off_deg, (0.0, 0.0)), sight)
+        quality, reasons = out["pose_quality"], out["pose_quality"]["reasons"]
+        assert symmetric_pose_error(np.asarray(out["pose"]), true, SymmetrySpec())[1] < 0.5
+        edges = quality["photo_edges"]
+        assert edges["views"] == 8 and abs(edges["turn_deg"] - off_deg) < 0.5, edges
+        assert any(r.startswith(RUNNER_UP_REASON) for r in reasons), reasons
+        assert (disagree in reasons) is not confirmed, reasons
+        photos_disagree = any(
+            r.startswith("the photos' edges turned the pose by 4.") for r in reasons
+        )
+        assert photos_disagree is not confirmed, reasons
+    start = turned(true, 4.0, (0.0, 0.0))
+    without = CaptureData(points_env=capture.points_env, cameras=capture.cameras)
+    kept = posed(start, CaptureSight(without, open_depth(capture)))
+    np.testing.assert_allclose(kept["pose"], start)
+    assert "photo_edges" not in kept["pose_quality"]
+    assert disagree in kept["pose_quality"]["reasons"]

@@ -1,0 +1,223 @@
+"""A flat object's turn on its support and shift across it from the photos' edges.
+
+Stereo blurs a low object's sides into its support and bleeds its outline outward, unevenly
+where the light, the lens or the blur differ between views, so the outline of the scan
+(:mod:`~workers.pipeline.pose.top_view`) can hold a turn of a few degrees that is not the
+object's. The photos keep its silhouette sharp: :func:`fit_photo_edges` turns the pose about
+the support's normal and shifts it across the support so that the posed model's silhouette
+in each photo lies on the photo's edges. All points are (N, 3) float64 metres; poses are
+4×4 ``env_from_object``; distances on images are in image pixels.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from workers.pipeline.compare.data import Camera, CaptureData
+from workers.pipeline.compare.files import read_photo
+from workers.pipeline.compare.visibility import DepthMap, project_in_image
+from workers.pipeline.geometry import Mat4, Points
+from workers.pipeline.pose.top_view import least_turn_and_shift, turned_in_plane
+
+#: Canny's hysteresis thresholds on the 8-bit grey photo blurred over 3×3 pixels
+CANNY_LOW, CANNY_HIGH = 30, 90
+#: least share of the posed silhouette a photo must show for it to count: an occluder's
+#: edge is not the object's
+MIN_SHOWN = 0.9
+#: a silhouette point is hidden where the capture's depth lies this much nearer than the
+#: model's nearest point (something stands in front of it), metres
+OCCLUDER_GAP_M = 0.01
+#: least silhouette length in a photo, pixels
+MIN_RIM_PX = 40
+#: turns about the support's normal each fit starts from, degrees
+START_TURNS_DEG = (0.0, -3.0, 3.0)
+#: the fit is repeated around its result (the silhouette chosen again) this many times
+PASSES = 2
+
+
+class EdgeModel(Protocol):
+    """What the fit needs of a model (a :class:`~workers.pipeline.model.PreparedModel` is
+    one): (N, 3) surface samples, their (N, 3) unit outward normals and (3,) centre, object
+    frame, metres."""
+
+    @property
+    def points(self) -> Points: ...
+
+    @property
+    def normals(self) -> Points: ...
+
+    @property
+    def centre_object(self) -> NDArray[np.float64]: ...
+
+
+@dataclass
+class CaptureSight:
+    """A capture as the pose step looks at it: its data, its ``depth_maps`` (None: none
+    rendered) and its photos' edges, read on first use and kept."""
+
+    capture: CaptureData
+    depth_maps: Sequence[DepthMap] | None
+    _distance: dict[str, NDArray[np.float32] | None] = field(default_factory=dict)
+
+    def edge_distance(self, camera: Camera) -> NDArray[np.float32] | None:
+        """(H, W) float32 distance in pixels from each pixel of ``camera``'s photo
+        (undistorted) to its nearest edge; None: no photo, or it could not be read."""
+        if camera.name not in self._distance:
+            self._distance[camera.name] = _edge_distance(self.capture, camera)
+        return self._distance[camera.name]
+
+
+def _edge_distance(capture: CaptureData, camera: Camera) -> NDArray[np.float32] | None:
+    import cv2  # heavy: imported only when a photo is read
+
+    path = capture.photos.get(camera.name)
+    if path is None:
+        return None
+    rgb = read_photo(path, camera, max(camera.width, camera.height))
+    if rgb is None or rgb.shape[:2] != (camera.height, camera.width):
+        return None
+    grey = cv2.cvtColor(np.asarray(rgb * 255.0, dtype=np.uint8), cv2.COLOR_RGB2GRAY)
+    edges = cv2.Canny(cv2.GaussianBlur(grey, (3, 3), 0), CANNY_LOW, CANNY_HIGH)
+    distance = cv2.distanceTransform((edges == 0).astype(np.uint8), cv2.DIST_L2, 3)
+    return np.asarray(distance, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class _Rim:
+    """The model points (object frame, (K, 3)) on the posed silhouette in one photo."""
+
+    camera: Camera
+    distance: NDArray[np.float32]
+    points_object: Points
+
+
+def _silhouette(uv: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(P, 2) pixels of the outer contour of the (N, 2) projected points, closed over gaps
+    of a few pixels."""
+    import cv2
+
+    lo = np.floor(uv.min(axis=0)).astype(int) - 4
+    hi = np.ceil(uv.max(axis=0)).astype(int) + 4
+    mask = np.zeros((hi[1] - lo[1] + 1, hi[0] - lo[0] + 1), dtype=np.uint8)
+    ij = np.round(uv - lo).astype(int)
+    mask[ij[:, 1], ij[:, 0]] = 255
+    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, np.ones((5, 5), dtype=np.uint8))
+    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if not contours:
+        return np.zeros((0, 2))
+    out: NDArray[np.float64] = np.vstack([c[:, 0, :] for c in contours]).astype(np.float64) + lo
+    return out
+
+
+def _rims(
+    model: EdgeModel, env_from_object: Mat4, sight: CaptureSight, max_views: int
+) -> list[_Rim]:
+    """The silhouettes of the posed model in the photos that show all of it: in the image,
+    and at least :data:`MIN_SHOWN` of the silhouette not behind something nearer than the
+    model's nearest point by :data:`OCCLUDER_GAP_M`; at most ``max_views`` of them (the
+    longest)."""
+    posed = model.points @ env_from_object[:3, :3].T + env_from_object[:3, 3]
+    found: list[tuple[int, _Rim]] = []
+    for dm in sight.depth_maps or ():
+        uv, z, inside = project_in_image(dm.camera, posed)
+        if not inside.all():
+            continue
+        contour = _silhouette(uv)
+        if len(contour) < MIN_RIM_PX:
+            continue
+        _, nearest = cKDTree(uv).query(contour)
+        rim = np.unique(nearest)
+        if np.mean(_depth_at(dm, uv[rim]) < z.min() - OCCLUDER_GAP_M) > 1.0 - MIN_SHOWN:
+            continue
+        distance = sight.edge_distance(dm.camera)
+        if distance is None:
+            continue
+        found.append((len(contour), _Rim(dm.camera, distance, model.points[rim])))
+    found.sort(key=lambda item: -item[0])
+    return [rim for _, rim in found[:max_views]]
+
+
+def _depth_at(depth_map: DepthMap, uv: NDArray[np.float64]) -> NDArray[np.float32]:
+    """The z-buffer's depth (metres) at (N, 2) image pixels inside the image."""
+    h, w = depth_map.depth.shape
+    cam = depth_map.camera
+    col = np.clip((uv[:, 0] * (w / cam.width)).astype(np.int64), 0, w - 1)
+    row = np.clip((uv[:, 1] * (h / cam.height)).astype(np.int64), 0, h - 1)
+    out: NDArray[np.float32] = depth_map.depth[row, col]
+    return out
+
+
+def _cost(rims: Sequence[_Rim], env_from_object: Mat4, cap_px: float) -> float:
+    """Mean over the photos of the mean distance (pixels, capped at ``cap_px``) from the
+    projected silhouette points to the photo's nearest edge."""
+    per_view = []
+    for rim in rims:
+        posed = rim.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
+        uv, _, inside = project_in_image(rim.camera, posed)
+        d = np.full(len(uv), cap_px)
+        col = np.clip(np.round(uv[inside, 0]).astype(int), 0, rim.camera.width - 1)
+        row = np.clip(np.round(uv[inside, 1]).astype(int), 0, rim.camera.height - 1)
+        d[inside] = np.minimum(rim.distance[row, col], cap_px)
+        per_view.append(float(d.mean()))
+    return float(np.mean(per_view)) if per_view else float("inf")
+
+
+def _fit_pass(
+    rims: Sequence[_Rim],
+    pose: Mat4,
+    centre_object: NDArray[np.float64],
+    normal_env: NDArray[np.float64],
+    cap_px: float,
+    first: bool,
+) -> Mat4:
+    """One pass of :func:`fit_photo_edges` on chosen silhouettes: the least-cost pose from
+    ``pose`` turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
+    centre = pose[:3, :3] @ centre_object + pose[:3, 3]
+
+    def cost(x: NDArray[np.float64]) -> float:
+        return _cost(rims, turned_in_plane(pose, normal_env, centre, x), cap_px)
+
+    best_x = least_turn_and_shift(cost, START_TURNS_DEG if first else (0.0,), ftol=1e-5)
+    return turned_in_plane(pose, normal_env, centre, best_x)
+
+
+@dataclass(frozen=True)
+class EdgeFit:
+    """The pose the photos' edges hold (``env_from_object``), its ``cost`` (mean pixels to
+    the nearest edge) and the start's, and ``views``, the photos that took part (0: no fit,
+    the start returned)."""
+
+    env_from_object: Mat4
+    cost: float
+    start_cost: float
+    views: int
+
+
+def fit_photo_edges(
+    model: EdgeModel,
+    start: Mat4,
+    normal_env: NDArray[np.float64],
+    sight: CaptureSight,
+    cap_px: float,
+    max_views: int,
+) -> EdgeFit:
+    """``start`` turned about the unit ``normal_env`` (the support's) through the object's
+    centre and shifted across the plane so that the model's silhouette lies on the edges
+    of the photos of ``sight`` that show all of it: mean distances capped at ``cap_px``
+    over at most ``max_views`` photos, minimised (Powell) from :data:`START_TURNS_DEG`, the
+    silhouettes chosen again around the result (:data:`PASSES`). No photo shows it:
+    ``start``, ``views`` 0."""
+    pose = start
+    rims = _rims(model, pose, sight, max_views)
+    if not rims:
+        return EdgeFit(start, float("inf"), float("inf"), 0)
+    for i in range(PASSES):
+        pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, i == 0)
+        rims = _rims(model, pose, sight, max_views) or rims
+    return EdgeFit(pose, _cost(rims, pose, cap_px), _cost(rims, start, cap_px), len(rims))

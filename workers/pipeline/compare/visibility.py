@@ -187,11 +187,18 @@ def _pixels(depth_map: DepthMap, uv: FloatArray) -> tuple[NDArray[np.int64], NDA
     return row, col
 
 
+def depth_at(depth_map: DepthMap, uv: FloatArray) -> NDArray[np.float32]:
+    """Z-buffer depth (metres, inf where nothing projects) at image pixels ``uv`` (N, 2)
+    inside the image."""
+    row, col = _pixels(depth_map, uv)
+    out: NDArray[np.float32] = depth_map.depth[row, col]
+    return out
+
+
 def _lookup(depth_map: DepthMap, uv: FloatArray, inside: BoolArray) -> FloatArray:
     """Z-buffer depth at image pixels ``uv`` (N, 2) where ``inside``; inf elsewhere."""
     out = np.full(len(uv), np.inf)
-    row, col = _pixels(depth_map, uv[inside])
-    out[inside] = depth_map.depth[row, col]
+    out[inside] = depth_at(depth_map, uv[inside])
     return out
 
 

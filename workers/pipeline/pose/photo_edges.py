@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.files import read_photo
-from workers.pipeline.compare.visibility import DepthMap, project_in_image
+from workers.pipeline.compare.visibility import DepthMap, depth_at, project_in_image
 from workers.pipeline.geometry import Mat4, Points
 from workers.pipeline.pose.top_view import least_turn_and_shift, turned_in_plane
 
@@ -63,7 +63,9 @@ class CaptureSight:
 
     capture: CaptureData
     depth_maps: Sequence[DepthMap] | None
-    _distance: dict[str, NDArray[np.float32] | None] = field(default_factory=dict)
+    _distance: dict[str, NDArray[np.float32] | None] = field(
+        default_factory=dict, init=False, repr=False
+    )
 
     def edge_distance(self, camera: Camera) -> NDArray[np.float32] | None:
         """(H, W) float32 distance in pixels from each pixel of ``camera``'s photo
@@ -133,7 +135,7 @@ def _rims(
             continue
         _, nearest = cKDTree(uv).query(contour)
         rim = np.unique(nearest)
-        if np.mean(_depth_at(dm, uv[rim]) < z.min() - OCCLUDER_GAP_M) > 1.0 - MIN_SHOWN:
+        if np.mean(depth_at(dm, uv[rim]) < z.min() - OCCLUDER_GAP_M) > 1.0 - MIN_SHOWN:
             continue
         distance = sight.edge_distance(dm.camera)
         if distance is None:
@@ -141,16 +143,6 @@ def _rims(
         found.append((len(contour), _Rim(dm.camera, distance, model.points[rim])))
     found.sort(key=lambda item: -item[0])
     return [rim for _, rim in found[:max_views]]
-
-
-def _depth_at(depth_map: DepthMap, uv: NDArray[np.float64]) -> NDArray[np.float32]:
-    """The z-buffer's depth (metres) at (N, 2) image pixels inside the image."""
-    h, w = depth_map.depth.shape
-    cam = depth_map.camera
-    col = np.clip((uv[:, 0] * (w / cam.width)).astype(np.int64), 0, w - 1)
-    row = np.clip((uv[:, 1] * (h / cam.height)).astype(np.int64), 0, h - 1)
-    out: NDArray[np.float32] = depth_map.depth[row, col]
-    return out
 
 
 def _cost(rims: Sequence[_Rim], env_from_object: Mat4, cap_px: float) -> float:

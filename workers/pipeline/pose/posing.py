@@ -29,6 +29,7 @@ from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
+from workers.pipeline.pose.top_view import stands_flat
 from workers.pipeline.pose.verify import (
     FINAL_TURN_REASON,
     RUNNER_UP_REASON,
@@ -124,10 +125,13 @@ def pose_change(
     quality = pose.quality_json()
     quality["chosen_by"] = pose.chosen_by
     reasons = list(pose.rejections)
-    if _tied(reasons):
-        # A near-symmetric object's near-ties: what the cameras saw (visible fitness)
-        # settles when it clearly prefers the choice; else the detector's boxes choose among
-        # those the same way up, settling when the choice re-projects clearly better.
+    if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
+        # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
+        # bracket turned end for end, a hammer on either face). What the cameras saw of each
+        # pose (visible fitness) settles the tie when it clearly prefers the pose step's
+        # choice; else the detector's boxes choose among the near-ties that stand the same
+        # way up (the pose step chose that), settling the tie when the choice re-projects
+        # clearly better than every near-tie.
         candidates = [chosen, *_rivals(pose, model, options)]
         checks = [check, *(check_of(alt) for alt in candidates[1:])]
         by_sight = _tiebreak(candidates, [seen_of(c) for c in candidates], model)
@@ -163,11 +167,6 @@ def pose_change(
     return {"pose": chosen.tolist(), "pose_quality": quality, "centroid_env": centre.tolist()}
 
 
-def _tied(reasons: Sequence[str]) -> bool:
-    """Whether a distinct pose scoring close to the chosen one is among the ``reasons``."""
-    return any(r.startswith(RUNNER_UP_REASON) for r in reasons)
-
-
 def _on_photo_edges(
     model: PreparedModel, env_from_object: Mat4, sight: CaptureSight, options: PoseOptions
 ) -> tuple[Mat4, dict[str, Any], tuple[str, ...], list[str]] | None:
@@ -183,8 +182,7 @@ def _on_photo_edges(
     (the scan and the photos disagree). A fit that lowers no cost keeps
     ``env_from_object``. None: not flat, the option off, or no photo shows all of it."""
     ratio = options.top_view_max_height_ratio
-    heights = model.points @ (env_from_object[:3, :3].T @ UP_ENV)
-    if ratio <= 0 or float(np.ptp(heights)) > ratio * model.diameter_m:
+    if not stands_flat(model.points, model.diameter_m, env_from_object, UP_ENV, ratio):
         return None
     fit = fit_photo_edges(
         model,

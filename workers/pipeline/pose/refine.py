@@ -51,7 +51,7 @@ from workers.pipeline.pose.fit import (
     truncated_score,
 )
 from workers.pipeline.pose.result import Trial
-from workers.pipeline.pose.top_view import fit_top_view, outline_costs
+from workers.pipeline.pose.top_view import fit_top_view, outline_costs, stands_flat
 
 REG = o3d.pipelines.registration
 
@@ -300,9 +300,8 @@ class Refiner:
         m, support = self.ctx.model, self.ctx.region.support
         if support is None:
             return False
-        heights = m.points @ (env_from_object[:3, :3].T @ support[:3])
         ratio = self.ctx.options.top_view_max_height_ratio
-        return float(np.ptp(heights)) <= ratio * m.diameter_m
+        return stands_flat(m.points, m.diameter_m, env_from_object, support[:3], ratio)
 
     def _seen_from_above(self, *starts: Mat4) -> Mat4:
         """The in-plane fit of the outline seen from above

@@ -142,6 +142,20 @@ class Outline:
         )
 
 
+def stands_flat(
+    model_points: Points,
+    diameter_m: float,
+    env_from_object: Mat4,
+    normal_env: NDArray[np.float64],
+    max_height_ratio: float,
+) -> bool:
+    """Whether the (N, 3) model points (object frame) posed by ``env_from_object`` stand at
+    most ``max_height_ratio`` × ``diameter_m`` tall along the unit ``normal_env``: a flat
+    object, whose turn and shift on its support come from above (a ratio ≤ 0 holds none)."""
+    heights = model_points @ (env_from_object[:3, :3].T @ normal_env)
+    return float(np.ptp(heights)) <= max_height_ratio * diameter_m
+
+
 def turned_in_plane(
     env_from_object: Mat4,
     normal: NDArray[np.float64],

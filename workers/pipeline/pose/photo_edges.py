@@ -145,19 +145,66 @@ def _rims(
     return [rim for _, rim in found[:max_views]]
 
 
-def _cost(rims: Sequence[_Rim], env_from_object: Mat4, cap_px: float) -> float:
+@dataclass(frozen=True)
+class _RimStack:
+    """The chosen silhouettes stacked for :func:`_cost`: (K, 3) object-frame points, each
+    point's photo (K,), camera matrix rows as (K,) columns, image size and offset into
+    the photos' distance maps laid end to end (flat float32)."""
+
+    points_object: Points
+    view: NDArray[np.int64]
+    cam: tuple[NDArray[np.float64], ...]
+    k: tuple[NDArray[np.float64], ...]
+    width: NDArray[np.int64]
+    height: NDArray[np.int64]
+    offset: NDArray[np.int64]
+    distance: NDArray[np.float32]
+    views: int
+
+
+def _stack(rims: Sequence[_Rim]) -> _RimStack:
+    sizes = [len(r.points_object) for r in rims]
+    view = np.repeat(np.arange(len(rims)), sizes)
+    cam = np.stack([r.camera.cam_from_env[:3, :4] for r in rims])[view]
+    k = np.stack([r.camera.k for r in rims])[view]
+    area = np.array([r.distance.size for r in rims])
+    return _RimStack(
+        points_object=np.vstack([r.points_object for r in rims]),
+        view=view,
+        cam=tuple(cam[:, i, j] for i in range(3) for j in range(4)),
+        k=(k[:, 0, 0], k[:, 0, 1], k[:, 0, 2], k[:, 1, 1], k[:, 1, 2]),
+        width=np.array([r.camera.width for r in rims])[view],
+        height=np.array([r.camera.height for r in rims])[view],
+        offset=(np.cumsum(area) - area)[view],
+        distance=np.concatenate([r.distance.ravel() for r in rims]),
+        views=len(rims),
+    )
+
+
+def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     """Mean over the photos of the mean distance (pixels, capped at ``cap_px``) from the
     projected silhouette points to the photo's nearest edge."""
-    per_view = []
-    for rim in rims:
-        posed = rim.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
-        uv, _, inside = project_in_image(rim.camera, posed)
-        d = np.full(len(uv), cap_px)
-        col = np.clip(np.round(uv[inside, 0]).astype(int), 0, rim.camera.width - 1)
-        row = np.clip(np.round(uv[inside, 1]).astype(int), 0, rim.camera.height - 1)
-        d[inside] = np.minimum(rim.distance[row, col], cap_px)
-        per_view.append(float(d.mean()))
-    return float(np.mean(per_view)) if per_view else float("inf")
+    if stack.views == 0:
+        return float("inf")
+    posed = stack.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
+    x, y, z = posed[:, 0], posed[:, 1], posed[:, 2]
+    c = stack.cam
+    xc = x * c[0] + y * c[1] + z * c[2] + c[3]
+    yc = x * c[4] + y * c[5] + z * c[6] + c[7]
+    zc = x * c[8] + y * c[9] + z * c[10] + c[11]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zs = np.where(zc > 0, zc, np.nan)
+        xn, yn = xc / zs, yc / zs
+        u = stack.k[0] * xn + stack.k[1] * yn + stack.k[2]
+        v = stack.k[3] * yn + stack.k[4]
+        inside = (zc > 1e-6) & (u >= 0) & (u < stack.width) & (v >= 0) & (v < stack.height)
+    d = np.full(len(posed), cap_px)
+    col = np.clip(np.round(u[inside]).astype(int), 0, stack.width[inside] - 1)
+    row = np.clip(np.round(v[inside]).astype(int), 0, stack.height[inside] - 1)
+    flat = stack.offset[inside] + row * stack.width[inside] + col
+    d[inside] = np.minimum(stack.distance[flat], cap_px)
+    per_view = np.bincount(stack.view, d, stack.views) / np.bincount(stack.view, None, stack.views)
+    return float(per_view.mean())
 
 
 def _fit_pass(
@@ -171,9 +218,10 @@ def _fit_pass(
     """One pass of :func:`fit_photo_edges` on chosen silhouettes: the least-cost pose from
     ``pose`` turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
     centre = pose[:3, :3] @ centre_object + pose[:3, 3]
+    stack = _stack(rims)
 
     def cost(x: NDArray[np.float64]) -> float:
-        return _cost(rims, turned_in_plane(pose, normal_env, centre, x), cap_px)
+        return _cost(stack, turned_in_plane(pose, normal_env, centre, x), cap_px)
 
     best_x = least_turn_and_shift(cost, START_TURNS_DEG if first else (0.0,), ftol=1e-5)
     return turned_in_plane(pose, normal_env, centre, best_x)
@@ -212,4 +260,5 @@ def fit_photo_edges(
     for i in range(PASSES):
         pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, i == 0)
         rims = _rims(model, pose, sight, max_views) or rims
-    return EdgeFit(pose, _cost(rims, pose, cap_px), _cost(rims, start, cap_px), len(rims))
+    stack = _stack(rims)
+    return EdgeFit(pose, _cost(stack, pose, cap_px), _cost(stack, start, cap_px), len(rims))

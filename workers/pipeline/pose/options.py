@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from workers.pipeline.errors import InputError
 from workers.pipeline.option_values import with_overrides
 
 #: the kinds of the last fit (``PoseOptions.final_fit``)
@@ -85,8 +86,7 @@ class PoseOptions:
     # degrees; tilted more, something holds it; ≤ rest_max_tilt_deg disables
     max_set_down_tilt_deg: float = 20.0
     # an object resting on its support at most this tall, × its diameter, takes its turn on
-    # it and shift across it from its outline seen from above (top_view.py), then from its
-    # photos' edges (photo_edges.py); 0 disables both
+    # it and shift across it from its outline seen from above (top_view.py); 0 disables
     top_view_max_height_ratio: float = 0.5
     # cap on the outline distances of that fit, voxels; ≥ the scan's noise at the outline
     top_view_reach_voxels: float = 2.0
@@ -96,7 +96,8 @@ class PoseOptions:
     # cap on the pixel distance from its silhouette to a photo's edge; ≥ the pose step's
     # error seen in the photos, ≤ the spacing of the support's own texture edges
     photo_edges_cap_px: float = 4.0
-    # the most photos that fit takes (those showing the object largest)
+    # every pose is turned on its support and shifted across it onto the edges of at most
+    # this many photos (those showing the object largest; photo_edges.py); 0 disables
     photo_edges_max_views: int = 12
     # the photos' fit turning the pose by at most this, degrees, confirms the pose step's
     # last fit where it and the ICP disagree (max_final_turn_deg); lower confirms fewer
@@ -115,6 +116,10 @@ class PoseOptions:
     outline_settle_ratio: float = 1.25
     # seed of RANSAC and the support-plane search: one seed, one result
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.photo_edges_max_views < 0:
+            raise InputError("pose option photo_edges_max_views must be ≥ 0")
 
 
 POSE_PRESETS: dict[str, PoseOptions] = {

@@ -1,12 +1,13 @@
-"""A flat object's turn on its support and shift across it from the photos' edges.
+"""An object's turn on its support and shift across it from the photos' edges.
 
 Stereo blurs a low object's sides into its support and bleeds its outline outward, unevenly
 where the light, the lens or the blur differ between views, so the outline of the scan
 (:mod:`~workers.pipeline.pose.top_view`) can hold a turn of a few degrees that is not the
-object's. The photos keep its silhouette sharp: :func:`fit_photo_edges` turns the pose about
-the support's normal and shifts it across the support so that the posed model's silhouette
-in each photo lies on the photo's edges. All points are (N, 3) float64 metres; poses are
-4×4 ``env_from_object``; distances on images are in image pixels.
+object's; a tall object's cloud holds its turn about the vertical only by the few features
+that break its near-symmetry. The photos keep its silhouette sharp: :func:`fit_photo_edges`
+turns the pose about the support's normal and shifts it across the support so that the
+posed model's silhouette in each photo lies on the photo's edges. All points are (N, 3)
+float64 metres; poses are 4×4 ``env_from_object``; distances on images are in image pixels.
 """
 
 from __future__ import annotations

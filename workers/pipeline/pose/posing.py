@@ -29,7 +29,6 @@ from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
-from workers.pipeline.pose.top_view import stands_flat
 from workers.pipeline.pose.verify import (
     FINAL_TURN_REASON,
     RUNNER_UP_REASON,
@@ -170,20 +169,17 @@ def pose_change(
 def _on_photo_edges(
     model: PreparedModel, env_from_object: Mat4, sight: CaptureSight, options: PoseOptions
 ) -> tuple[Mat4, dict[str, Any], tuple[str, ...], list[str]] | None:
-    """A flat object's pose (at most ``top_view_max_height_ratio`` × its diameter tall
-    along the environment's up) turned on its support and shifted across it onto the
-    photos' edges (:func:`~workers.pipeline.pose.photo_edges.fit_photo_edges`), with its
-    figures (photos used, mean pixels to the edges before and after, the turn, degrees
-    modulo symmetry, and shift, metres, from ``env_from_object``); how the reasons the
-    photos settle begin (the last fits' disagreement on the turn when the photos turned
-    the pose by at most ``photo_edges_confirm_deg``: they confirm the last fit; near-ties
-    they do not settle: a pose on the wrong face can fit the photos' edges as closely);
-    and the reason it is not verified when that turn exceeds ``max_final_turn_deg``
-    (the scan and the photos disagree). A fit that lowers no cost keeps
-    ``env_from_object``. None: not flat, the option off, or no photo shows all of it."""
-    ratio = options.top_view_max_height_ratio
-    if not stands_flat(model.points, model.diameter_m, env_from_object, UP_ENV, ratio):
-        return None
+    """The pose turned about the environment's up through the object's centre and shifted
+    across the support onto the photos' edges
+    (:func:`~workers.pipeline.pose.photo_edges.fit_photo_edges`), with its figures (photos
+    used, mean pixels to the edges before and after, the turn, degrees modulo symmetry, and
+    shift, metres, from ``env_from_object``); how the reasons the photos settle begin (the
+    last fits' disagreement on the turn when the photos turned the pose by at most
+    ``photo_edges_confirm_deg``: they confirm the last fit; near-ties they do not settle: a
+    pose on the wrong face can fit the photos' edges as closely); and the reason it is not
+    verified when that turn exceeds ``max_final_turn_deg`` (the scan and the photos
+    disagree). A fit that lowers no cost keeps ``env_from_object``. None: no photo shows
+    all of it (``photo_edges_max_views`` 0: never)."""
     fit = fit_photo_edges(
         model,
         env_from_object,

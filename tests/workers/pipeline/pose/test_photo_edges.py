@@ -1,6 +1,6 @@
-"""A flat object's turn and shift from the photos' edges (workers/pipeline/pose/photo_edges.py):
-an L-shaped plate on the floor photographed from a ring of cameras, its pose started 4°
-and 3 mm off."""
+"""An object's turn and shift from the photos' edges (workers/pipeline/pose/photo_edges.py):
+an L-shaped plate (and an L-shaped pillar) on the floor photographed from a ring of cameras,
+its pose started 4° and 3 mm off."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ import pytest
 from tests.workers.pipeline.test_pose_verify import near_tie
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.visibility import DepthMap
+from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import make_rigid, rotation_about_unit_axis, transform_points
 from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
 from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, posing
@@ -28,6 +29,8 @@ K = np.array([[600.0, 0.0, 320.0], [0.0, 600.0, 240.0], [0.0, 0.0, 1.0]])
 #: the plate's two bars (min corner, max corner), object frame, metres: 12 × 3 cm and
 #: 3 × 8 cm, 1.5 cm thick, resting on z = 0
 BARS = (((-0.06, -0.04, 0.0), (0.06, -0.01, 0.015)), ((-0.06, -0.01, 0.0), (-0.03, 0.04, 0.015)))
+#: the same L as a pillar 12 cm tall: no flat object
+PILLAR = tuple((lo, (hi[0], hi[1], 0.12)) for lo, hi in BARS)
 
 
 @dataclass(frozen=True)
@@ -40,11 +43,12 @@ class Plate:
     centre_object: np.ndarray
 
 
-def plate(spacing: float = 0.002) -> Plate:
-    """The plate's outer surface sampled every ``spacing`` metres (faces shared by the two
-    bars left out)."""
+def plate(spacing: float = 0.002, bars: Any = BARS) -> Plate:
+    """The plate's outer surface (``bars``: two boxes, (min, max) corners, the second
+    meeting the first at y = −0.01) sampled every ``spacing`` metres (faces shared by the
+    two bars left out)."""
     points, normals = [], []
-    for lo, hi in BARS:
+    for lo, hi in bars:
         lo_a, hi_a = np.asarray(lo), np.asarray(hi)
         for axis in range(3):
             for side, bound in ((-1.0, lo_a), (1.0, hi_a)):
@@ -61,7 +65,7 @@ def plate(spacing: float = 0.002) -> Plate:
     p, n = np.vstack(points), np.vstack(normals)
     # the faces where the bars meet are inside the L: keep what no bar's interior holds
     inner = np.zeros(len(p), dtype=bool)
-    for lo, hi in BARS:
+    for lo, hi in bars:
         inner |= np.all((p > np.asarray(lo) + 1e-6) & (p < np.asarray(hi) - 1e-6), axis=1)
     shared = (np.abs(p[:, 1] + 0.01) < 1e-9) & (p[:, 0] > -0.06 + 1e-9) & (p[:, 0] < -0.03 - 1e-9)
     keep = ~inner & ~shared
@@ -122,6 +126,23 @@ def setting(tmp_path_factory: pytest.TempPathFactory) -> tuple[Plate, np.ndarray
     return model, true, photograph(tmp_path_factory.mktemp("photos"), model, true)
 
 
+def for_the_pose_step(model: Plate, diameter_m: float, capture: CaptureData) -> tuple[Any, Any]:
+    """The model as the pose step takes it (no symmetry, z up) and a change whose cluster is
+    the whole capture's cloud."""
+    prepared = SimpleNamespace(
+        points=model.points,
+        normals=model.normals,
+        centre_object=model.centre_object,
+        up_object=UP,
+        symmetry=SymmetrySpec(),
+        diameter_m=diameter_m,
+    )
+    change = SimpleNamespace(
+        cluster=SimpleNamespace(points_env=capture.points_env), previous_env_from_object=None
+    )
+    return prepared, change
+
+
 def test_the_fit_turns_and_shifts_a_pose_onto_the_photos_edges(
     setting: tuple[Plate, np.ndarray, CaptureData],
 ) -> None:
@@ -162,18 +183,8 @@ def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
     more than ``max_final_turn_deg``: the scan and the photos disagree, unverified. Without
     photos the pose step's pose stands."""
     model, true, capture = setting
-    flat_model: Any = SimpleNamespace(
-        points=model.points,
-        normals=model.normals,
-        centre_object=model.centre_object,
-        up_object=UP,
-        symmetry=SymmetrySpec(),
-        diameter_m=0.13,
-    )
+    flat_model, change = for_the_pose_step(model, 0.13, capture)
     over = make_rigid(rotation_about_unit_axis(np.array([1.0, 0.0, 0.0]), np.pi), (0, 0, 0.015))
-    change: Any = SimpleNamespace(
-        cluster=SimpleNamespace(points_env=capture.points_env), previous_env_from_object=None
-    )
     # the scan holds both near-ties: what the cameras saw settles nothing
     both = np.vstack([capture.points_env, transform_points(true @ over, model.points)])
     cloud = SceneCloud.create(both)
@@ -205,3 +216,31 @@ def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
     np.testing.assert_allclose(kept["pose"], start)
     assert "photo_edges" not in kept["pose_quality"]
     assert disagree in kept["pose_quality"]["reasons"]
+
+
+def test_a_tall_object_is_turned_onto_the_photos_edges_too(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The pillar (12 cm tall, 13 cm across: not flat) chosen 2° and 2 mm off ends on the
+    photos' edges; with ``photo_edges_max_views`` 0 the pose step's pose stands."""
+    model = plate(bars=PILLAR)
+    true = make_rigid(rotation_about_unit_axis(UP, np.radians(-20.0)), (0.01, 0.0, 0.0))
+    capture = photograph(tmp_path, model, true)
+    pillar, change = for_the_pose_step(model, 0.17, capture)
+    start = turned(true, 2.0, (0.002, 0.0))
+    monkeypatch.setattr(
+        posing, "estimate_pose", lambda *a, **k: near_tie(start, true, len(capture.points_env))
+    )
+    cloud, sight = SceneCloud.create(capture.points_env), CaptureSight(capture, open_depth(capture))
+    for views in (12, 0):
+        options = replace(POSE_PRESETS["default"], photo_edges_max_views=views)
+        out = posing.pose_change(change, pillar, cloud, sight, 0, options)
+        shift, turn = symmetric_pose_error(np.asarray(out["pose"]), true, SymmetrySpec())
+        if views:
+            assert out["pose_quality"]["photo_edges"]["views"] == 8
+            assert turn < 0.5 and shift < 0.001, (turn, shift)
+        else:
+            assert "photo_edges" not in out["pose_quality"]
+            np.testing.assert_allclose(out["pose"], start)
+    with pytest.raises(InputError, match="photo_edges_max_views"):
+        replace(POSE_PRESETS["default"], photo_edges_max_views=-1)

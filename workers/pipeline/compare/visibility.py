@@ -60,7 +60,8 @@ def zbuffer_scale(camera: Camera, max_side: int) -> float:
 def _camera_coords(
     cam_from_env: FloatArray, x: NDArray[Any], y: NDArray[Any], z: NDArray[Any]
 ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
-    """Camera coordinates of points given as columns (each (N,)), elementwise.
+    """Camera coordinates of points given as columns (each (N,)), elementwise;
+    ``cam_from_env`` (≥ 3, 4), or (3, 4, N): a camera per point.
 
     Deliberately not ``points @ R.T``: a (N, 3) × (3, 3) product goes to multithreaded BLAS,
     which on a shared, oversubscribed machine was 10× slower than these 9 fused
@@ -212,8 +213,16 @@ def project_in_image(
 ) -> tuple[FloatArray, FloatArray, BoolArray]:
     """Pixels (N, 2), depths (N,) m and a mask (N,) of (N, 3) points in front and in the image."""
     pts = as_points(points_env, "points_env")
-    xc, yc, z = _camera_coords(camera.cam_from_env, pts[:, 0], pts[:, 1], pts[:, 2])
-    k = camera.k
+    return project_points(camera.k, camera.cam_from_env, camera.width, camera.height, pts)
+
+
+def project_points(
+    k: NDArray[Any], cam_from_env: NDArray[Any], width: Any, height: Any, points_env: FloatArray
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """:func:`project_in_image` of (N, 3) points through one camera (``k`` (3, 3),
+    ``cam_from_env`` (4, 4), ``width``/``height`` pixels) or through a camera per point,
+    stacked along a last axis (``k`` (3, 3, N), ``cam_from_env`` (3, 4, N), (N,) sizes)."""
+    xc, yc, z = _camera_coords(cam_from_env, points_env[:, 0], points_env[:, 1], points_env[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         zs = np.where(z > 0, z, np.nan)
         xn, yn = xc / zs, yc / zs
@@ -221,9 +230,9 @@ def project_in_image(
         inside = (
             (z > 1e-6)
             & (uv[:, 0] >= 0)
-            & (uv[:, 0] < camera.width)
+            & (uv[:, 0] < width)
             & (uv[:, 1] >= 0)
-            & (uv[:, 1] < camera.height)
+            & (uv[:, 1] < height)
         )
     return uv, z, inside
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +22,12 @@ from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.files import read_photo
-from workers.pipeline.compare.visibility import DepthMap, depth_at, project_in_image
+from workers.pipeline.compare.visibility import (
+    DepthMap,
+    depth_at,
+    project_in_image,
+    project_points,
+)
 from workers.pipeline.geometry import Mat4, Points
 from workers.pipeline.pose.top_view import least_turn_and_shift, turned_in_plane
 
@@ -149,13 +154,14 @@ def _rims(
 @dataclass(frozen=True)
 class _RimStack:
     """The chosen silhouettes stacked for :func:`_cost`: (K, 3) object-frame points, each
-    point's photo (K,), camera matrix rows as (K,) columns, image size and offset into
-    the photos' distance maps laid end to end (flat float32)."""
+    point's photo (K,), its camera (``k`` (3, 3, K), ``cam_from_env`` (3, 4, K), image
+    ``width``/``height`` (K,)) and offset into the photos' distance maps laid end to end
+    (flat float32)."""
 
     points_object: Points
     view: NDArray[np.int64]
-    cam: tuple[NDArray[np.float64], ...]
-    k: tuple[NDArray[np.float64], ...]
+    k: NDArray[np.float64]
+    cam_from_env: NDArray[np.float64]
     width: NDArray[np.int64]
     height: NDArray[np.int64]
     offset: NDArray[np.int64]
@@ -164,16 +170,18 @@ class _RimStack:
 
 
 def _stack(rims: Sequence[_Rim]) -> _RimStack:
-    sizes = [len(r.points_object) for r in rims]
-    view = np.repeat(np.arange(len(rims)), sizes)
-    cam = np.stack([r.camera.cam_from_env[:3, :4] for r in rims])[view]
-    k = np.stack([r.camera.k for r in rims])[view]
+    """(≥ 1) silhouettes stacked."""
+    view = np.repeat(np.arange(len(rims)), [len(r.points_object) for r in rims])
+
+    def per_point(values: list[NDArray[Any]]) -> NDArray[Any]:
+        return np.ascontiguousarray(np.moveaxis(np.stack(values)[view], 0, -1))
+
     area = np.array([r.distance.size for r in rims])
     return _RimStack(
         points_object=np.vstack([r.points_object for r in rims]),
         view=view,
-        cam=tuple(cam[:, i, j] for i in range(3) for j in range(4)),
-        k=(k[:, 0, 0], k[:, 0, 1], k[:, 0, 2], k[:, 1, 1], k[:, 1, 2]),
+        k=per_point([r.camera.k for r in rims]),
+        cam_from_env=per_point([r.camera.cam_from_env[:3, :4] for r in rims]),
         width=np.array([r.camera.width for r in rims])[view],
         height=np.array([r.camera.height for r in rims])[view],
         offset=(np.cumsum(area) - area)[view],
@@ -185,25 +193,13 @@ def _stack(rims: Sequence[_Rim]) -> _RimStack:
 def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     """Mean over the photos of the mean distance (pixels, capped at ``cap_px``) from the
     projected silhouette points to the photo's nearest edge."""
-    if stack.views == 0:
-        return float("inf")
     posed = stack.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
-    x, y, z = posed[:, 0], posed[:, 1], posed[:, 2]
-    c = stack.cam
-    xc = x * c[0] + y * c[1] + z * c[2] + c[3]
-    yc = x * c[4] + y * c[5] + z * c[6] + c[7]
-    zc = x * c[8] + y * c[9] + z * c[10] + c[11]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        zs = np.where(zc > 0, zc, np.nan)
-        xn, yn = xc / zs, yc / zs
-        u = stack.k[0] * xn + stack.k[1] * yn + stack.k[2]
-        v = stack.k[3] * yn + stack.k[4]
-        inside = (zc > 1e-6) & (u >= 0) & (u < stack.width) & (v >= 0) & (v < stack.height)
+    uv, _, inside = project_points(stack.k, stack.cam_from_env, stack.width, stack.height, posed)
     d = np.full(len(posed), cap_px)
-    col = np.clip(np.round(u[inside]).astype(int), 0, stack.width[inside] - 1)
-    row = np.clip(np.round(v[inside]).astype(int), 0, stack.height[inside] - 1)
-    flat = stack.offset[inside] + row * stack.width[inside] + col
-    d[inside] = np.minimum(stack.distance[flat], cap_px)
+    width = stack.width[inside]
+    col = np.clip(np.round(uv[inside, 0]).astype(int), 0, width - 1)
+    row = np.clip(np.round(uv[inside, 1]).astype(int), 0, stack.height[inside] - 1)
+    d[inside] = np.minimum(stack.distance[stack.offset[inside] + row * width + col], cap_px)
     per_view = np.bincount(stack.view, d, stack.views) / np.bincount(stack.view, None, stack.views)
     return float(per_view.mean())
 

@@ -14,6 +14,7 @@ from workers.pipeline.errors import ShapeError
 
 Mat4 = NDArray[np.float64]
 Points = NDArray[np.float64]
+Vec3 = NDArray[np.float64] | tuple[float, float, float]
 
 
 def as_mat4(matrix: ArrayLike, name: str = "matrix") -> Mat4:
@@ -84,9 +85,17 @@ def perpendicular_pair(unit_axis: ArrayLike) -> tuple[NDArray[np.float64], NDArr
     """Two (3,) unit vectors ``u``, ``v`` with ``(u, v, unit_axis)`` right-handed and
     orthonormal, for a (3,) axis of length 1 (not normalised here)."""
     a = np.asarray(unit_axis, dtype=np.float64).reshape(3)
-    u = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u = _cross3(a, (1.0, 0.0, 0.0) if abs(a[0]) < 0.9 else (0.0, 1.0, 0.0))
     u /= np.linalg.norm(u)
-    return u, np.cross(a, u)
+    return u, _cross3(a, u)
+
+
+def _cross3(a: Vec3, b: Vec3) -> NDArray[np.float64]:
+    """``np.cross`` of two (3,) vectors, the same arithmetic without its per-call overhead
+    (a pose fit takes tens of thousands)."""
+    a0, a1, a2 = a
+    b0, b1, b2 = b
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], dtype=np.float64)
 
 
 def rotation_about_unit_axis(unit_axis: ArrayLike, angle_rad: float) -> NDArray[np.float64]:

@@ -99,11 +99,8 @@ def test_standing_heights_are_above_the_highest_support_beneath() -> None:
     assert np.isnan(heights[3])
 
 
-def test_every_object_is_found_with_its_class_and_place(
-    models: dict[str, PreparedModel],
-) -> None:
-    """Two crates and a bin on the floor, one crate on a table behind a wall: four objects,
-    two instances of one class kept apart, each where it stands (within 1 cm)."""
+def _four_objects() -> CaptureData:
+    """Two crates and a bin on the floor, one crate on a table behind a wall."""
     rng = np.random.default_rng(3)
     table = [Obj(0, (-1.2, -1.0), (((0.0, 0.0), (0.4, 0.3, 0.3)),))]
     on_table = capture(table, [], seed=4, x_range=(-1.45, -0.95)).points_env
@@ -113,8 +110,15 @@ def test_every_object_is_found_with_its_class_and_place(
     scene = capture(objs, CAMS, seed=1, extra=np.vstack([wall(rng), table_top(rng), on_table]))
     raised = Obj(0, (-1.2, -1.0), (((0.0, 0.0), (0.4, 0.3, 0.3)),))
     dets = capture([*objs, raised], CAMS, seed=9).detections  # boxes of the floor-level crate
-    scene = CaptureData(scene.points_env, scene.cameras, _lift_boxes(dets, raised), None)
-    result = take_inventory(scene, CLASSES, diameters(models), models.__getitem__)
+    return CaptureData(scene.points_env, scene.cameras, _lift_boxes(dets, raised), None)
+
+
+def test_every_object_is_found_with_its_class_and_place(
+    models: dict[str, PreparedModel],
+) -> None:
+    """Four objects (:func:`_four_objects`), two instances of one class kept apart, each
+    where it stands (within 1 cm)."""
+    result = take_inventory(_four_objects(), CLASSES, diameters(models), models.__getitem__)
     found = sorted((o.object_name, *np.round(o.centroid_env[:2], 1)) for o in result.objects)
     assert found == [
         ("bin", 0.7, -0.6),
@@ -129,6 +133,26 @@ def test_every_object_is_found_with_its_class_and_place(
     by_support = {o.support for o in result.objects if o.centroid_env[2] > 0.6}
     assert by_support == {"surface_1"}
     assert result.stats["objects"] == 4
+
+
+def test_the_objects_do_not_depend_on_how_many_are_posed_at_once(
+    models: dict[str, PreparedModel],
+) -> None:
+    """The segments posed one after the other and three at a time give the same objects,
+    poses and figures, bit for bit, in the same order."""
+    scene = _four_objects()
+
+    def found(threads: int) -> list[tuple[str, list[list[float]], object]]:
+        options = inventory_options_from_json({"pose": {"threads": threads}})
+        result = take_inventory(scene, CLASSES, diameters(models), models.__getitem__, options)
+        return [
+            (o.object_name, np.asarray(o.env_from_object).tolist(), o.pose_quality)
+            for o in result.objects
+        ]
+
+    one = found(1)
+    assert len(one) == 4
+    assert found(3) == one
 
 
 def _lift_boxes(dets: Mapping[str, np.ndarray], raised: Obj) -> dict[str, np.ndarray]:

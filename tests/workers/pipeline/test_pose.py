@@ -772,7 +772,7 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     normals = np.vstack([normals, np.tile([0, 0, -1.0], (50, 1))])
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002)
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
-    refiner = Refiner(ctx, None, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
+    refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
     seen = refiner._in_view(points, np.eye(3))
     assert len(seen) == 100 and seen[:, 2].min() >= 0.02
     region.support = None
@@ -794,7 +794,7 @@ def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=band)
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     points, normals = np.repeat(points, 5, axis=0), np.repeat(normals, 5, axis=0)
-    refiner = Refiner(ctx, None, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
+    refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
     seen = refiner._in_view(points, np.eye(3))
     assert sorted(set(np.round(seen[:, 2], 4))) == [-0.004, -0.0025]
 
@@ -877,7 +877,7 @@ def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_th
     def refined(score: float, pose: np.ndarray) -> Refined:
         return Refined(score, pose, Trial("given", score, 0.5, 0.001, 0.0, pose))
 
-    pool = CandidatePool(refiner.ctx, None, None)  # type: ignore[arg-type]
+    pool = CandidatePool(refiner.ctx, None)  # type: ignore[arg-type]
     for ratio, settles in ((0.0, False), (refiner.ctx.options.outline_settle_ratio, True)):
         refiner.ctx = replace(
             refiner.ctx, options=replace(refiner.ctx.options, outline_settle_ratio=ratio)

@@ -39,6 +39,7 @@ from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.photo_edges import CaptureSight
 from workers.pipeline.pose.posing import pose_change
+from workers.pipeline.threads import ordered_map
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -274,6 +275,64 @@ def _weak_reason(ident: Mapping[str, Any], name: str, c: CompareOptions) -> str:
     return f"named by no class: segment {segment:.2f}, {model} < {c.identify_threshold}"
 
 
+@dataclass(frozen=True)
+class _Posing:
+    """What every segment's pose shares (read only while the segments are posed)."""
+
+    capture: CaptureData
+    classes: Sequence[str]
+    seg: _Segments
+    weak: Mapping[ClusterResult, str]
+    prepared: Mapping[str, PreparedModel]
+    scene: SceneCloud | None
+    sight: CaptureSight
+    options: InventoryOptions
+
+
+def _pose_segment(
+    p: _Posing, cluster: ClusterResult, name: str
+) -> tuple[InventoryObject | None, dict[str, Any] | None]:
+    """One identified segment posed and checked: (the object, None) or (None, why not)."""
+    compare_options = p.options.compare_options()
+    ident = cluster.identification_json(name)
+    ident.pop("object", None)
+    pose: dict[str, Any] = {}
+    model = p.prepared.get(name)
+    class_id = list(p.classes).index(name)
+    if model is not None and p.scene is not None:
+        change = Change(f"segment-{cluster.id}", "added", name, None, cluster)
+        pose = pose_change(change, model, p.scene, p.sight, class_id, p.options.pose_options())
+    quality = pose.get("pose_quality")
+    passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
+    reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]
+    unnamed = False  # a weakly named segment counts only when its posed model names it
+    if cluster in p.weak:
+        if pose.get("pose") is not None and model is not None:
+            posed = transform_points(np.asarray(pose["pose"]), model.points)
+            maps = _maps(p.seg, compare_options)
+            table = points_table([posed], p.capture, maps, p.classes, compare_options)
+            ident["model_metric"] = float(table.metric[0, class_id])
+        unnamed = ident.get("model_metric", 0.0) < compare_options.identify_threshold
+        if unnamed:
+            reasons = [_weak_reason(ident, name, compare_options), *reasons]
+    if unnamed or (p.options.require_reprojection and model is not None and not passed):
+        why = {"object": name, "identification": ident, "cluster": _segment_json(cluster)}
+        return None, why | {"reason": "; ".join(reasons)}
+    return (
+        InventoryObject(
+            object_name=name,
+            class_id=class_id,
+            env_from_object=None if pose.get("pose") is None else np.asarray(pose["pose"]),
+            pose_quality=quality,
+            identification=ident,
+            centroid_env=np.asarray(pose.get("centroid_env", cluster.centroid), float),
+            cluster=_segment_json(cluster),
+            support=_support_of(cluster, p.seg),
+        ),
+        None,
+    )
+
+
 def _pose_segments(
     capture: CaptureData,
     classes: Sequence[str],
@@ -283,66 +342,27 @@ def _pose_segments(
     options: InventoryOptions,
     report: Progress,
 ) -> tuple[list[InventoryObject], list[dict[str, Any]]]:
-    """Each identified segment posed as the pose stage poses a change; those whose posed
-    model misses the detector's boxes are rejected (``require_reprojection``)."""
-    compare_options = options.compare_options()
-    weak = _weakly_named(seg.segments, class_diameters_m, compare_options)
+    """Each identified segment posed as the pose stage poses a change (the pose options'
+    ``threads`` at once); those whose posed model misses the detector's boxes are rejected
+    (``require_reprojection``)."""
+    weak = _weakly_named(seg.segments, class_diameters_m, options.compare_options())
     named = [(c, str(c.object_name)) for c in seg.segments if c.object_name is not None]
     named += [(c, name) for c, name in weak.items()]
-    pose_options = options.pose_options()
     scene = SceneCloud.create(capture.points_env, colors=capture.colors) if named else None
-    sight = CaptureSight(capture, seg.maps)
-    prepared: dict[str, PreparedModel] = {}
-    found: list[InventoryObject] = []
-    rejected: list[dict[str, Any]] = []
-    for i, (cluster, name) in enumerate(named):
-        report("inventory.pose", 0.4 + 0.6 * i / len(named))
-        ident = cluster.identification_json(name)
-        ident.pop("object", None)
-        pose: dict[str, Any] = {}
-        if name in class_diameters_m and scene is not None:
-            if name not in prepared:
-                prepared[name] = load_model(name)
-            change = Change(f"segment-{cluster.id}", "added", name, None, cluster)
-            class_id = list(classes).index(name)
-            pose = pose_change(change, prepared[name], scene, sight, class_id, pose_options)
-        quality = pose.get("pose_quality")
-        passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
-        reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]
-        unnamed = False  # a weakly named segment counts only when its posed model names it
-        if cluster in weak:
-            if pose.get("pose") is not None:
-                posed = transform_points(np.asarray(pose["pose"]), prepared[name].points)
-                table = points_table(
-                    [posed], capture, _maps(seg, compare_options), classes, compare_options
-                )
-                ident["model_metric"] = float(table.metric[0, list(classes).index(name)])
-            unnamed = ident.get("model_metric", 0.0) < compare_options.identify_threshold
-            if unnamed:
-                reasons = [_weak_reason(ident, name, compare_options), *reasons]
-        if unnamed or (options.require_reprojection and name in class_diameters_m and not passed):
-            rejected.append(
-                {
-                    "object": name,
-                    "identification": ident,
-                    "cluster": _segment_json(cluster),
-                    "reason": "; ".join(reasons),
-                }
-            )
-            continue
-        found.append(
-            InventoryObject(
-                object_name=name,
-                class_id=list(classes).index(name),
-                env_from_object=None if pose.get("pose") is None else np.asarray(pose["pose"]),
-                pose_quality=quality,
-                identification=ident,
-                centroid_env=np.asarray(pose.get("centroid_env", cluster.centroid), float),
-                cluster=_segment_json(cluster),
-                support=_support_of(cluster, seg),
-            )
-        )
-    return found, rejected
+    wanted = dict.fromkeys(name for _, name in named if name in class_diameters_m)
+    prepared = {name: load_model(name) for name in wanted} if scene is not None else {}
+    posing = _Posing(
+        capture, classes, seg, weak, prepared, scene, CaptureSight(capture, seg.maps), options
+    )
+    report("inventory.pose", 0.4)
+    outcomes = ordered_map(
+        lambda item: _pose_segment(posing, *item),
+        named,
+        options.pose_options().threads,
+        lambda k: report("inventory.pose", 0.4 + 0.6 * k / len(named)),
+    )
+    found = [obj for obj, _ in outcomes if obj is not None]
+    return found, [why for _, why in outcomes if why is not None]
 
 
 def take_inventory(

@@ -32,7 +32,12 @@ from workers.pipeline.geometry import (
 from workers.pipeline.model import PreparedModel, make_cloud
 from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
 from workers.pipeline.pose.crop import PoseInputs, SceneRegion
-from workers.pipeline.pose.fit import exclusion_factor, icp_point_to_plane, truncated_score
+from workers.pipeline.pose.fit import (
+    exclusion_factor,
+    fitness_and_rmse,
+    icp_point_to_plane,
+    truncated_score,
+)
 from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.result import Trial
 from workers.pipeline.seeded import seeded_open3d
@@ -75,20 +80,15 @@ class CandidatePool:
     ``trials`` in the order they were found, ``flipped`` the ids of trials already turned."""
 
     ctx: FitContext
-    model_down: o3d.geometry.PointCloud
     model_features: o3d.geometry.PointCloud
     trials: list[Trial] = field(default_factory=list)
     flipped: set[int] = field(default_factory=set)
 
     @classmethod
     def create(cls, ctx: FitContext) -> CandidatePool:
-        """An empty pool with the model's downsampled and descriptor clouds."""
+        """An empty pool with the model's descriptor cloud."""
         m = ctx.model
-        return cls(
-            ctx,
-            make_cloud(m.down_points, m.down_normals, None),
-            make_cloud(m.feature_points, m.feature_normals, None),
-        )
+        return cls(ctx, make_cloud(m.feature_points, m.feature_normals, None))
 
     def polish(self, init: Mat4, source: str, t_begin: float) -> None:
         """ICP ``init`` (env_from_object) at the first two scales, score it and add the
@@ -107,14 +107,14 @@ class CandidatePool:
         t = rounded_rigid(t, 9)
         pts = transform_points(t, m.down_points)
         tau = o.score_voxels * v
-        ev = REG.evaluate_registration(self.model_down, region.fine, tau, t)
+        fitness, rmse = fitness_and_rmse(region.target_fine.tree, pts, tau)
         excluded = self.ctx.exclusion(pts)
         self.trials.append(
             Trial(
                 source,
                 truncated_score(region.target_fine.tree, pts, tau) * excluded,
-                float(ev.fitness),
-                float(ev.inlier_rmse),
+                fitness,
+                rmse,
                 time.perf_counter() - t_begin,
                 t,
             )

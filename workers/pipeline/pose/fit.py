@@ -214,6 +214,17 @@ def truncated_score(tree: cKDTree, points: Points, tau: float) -> float:
     return float(np.mean(np.clip(1.0 - (d / tau) ** 2, 0.0, None)))
 
 
+def fitness_and_rmse(tree: cKDTree, points: Points, max_distance_m: float) -> tuple[float, float]:
+    """Open3D's registration figures of (N, 3) posed points against a scene tree: the share
+    with a scene point within ``max_distance_m``, and those distances' RMS (metres; 0 when
+    none). Summed here in one order, so they do not depend on how many threads run."""
+    d, _ = tree.query(points, distance_upper_bound=max_distance_m)
+    near = d[np.isfinite(d)]
+    if near.size == 0:
+        return 0.0, 0.0
+    return near.size / len(points), float(np.sqrt(np.mean(near**2)))
+
+
 def exclusion_factor(
     posed: Points,
     support: NDArray[np.float64] | None,

@@ -116,10 +116,13 @@ class PoseOptions:
     outline_settle_ratio: float = 1.25
     # seed of RANSAC and the support-plane search: one seed, one result
     seed: int = 0
+    # objects posed at once, on threads (0: one per core); the poses do not depend on it
+    threads: int = 0
 
     def __post_init__(self) -> None:
-        if self.photo_edges_max_views < 0:
-            raise InputError("pose option photo_edges_max_views must be ≥ 0")
+        for name in ("photo_edges_max_views", "threads"):
+            if getattr(self, name) < 0:
+                raise InputError(f"pose option {name} must be ≥ 0")
 
 
 POSE_PRESETS: dict[str, PoseOptions] = {

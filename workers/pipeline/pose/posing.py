@@ -37,6 +37,7 @@ from workers.pipeline.pose.verify import (
     scene_distances,
     visible_fitness,
 )
+from workers.pipeline.threads import ordered_map
 
 POSED_TYPES = frozenset({"added", "moved", "swapped"})
 #: how much better (mean IoU with the detector's boxes) the chosen pose must re-project than
@@ -299,26 +300,19 @@ def pose_changes(
     posed = [c for c in result.changes if c.type in POSED_TYPES and c.object_name in available]
     scene = SceneCloud.create(after.points_env, colors=after.colors) if posed else None
     sight = CaptureSight(after, render_depth_maps(after, compare_options) if posed else None)
-    prepared: dict[str, PreparedModel] = {}
-    records: list[dict[str, Any]] = []
-    for i, change in enumerate(result.changes):
-        report("pose", i / max(len(result.changes), 1))
-        record = change.to_json()
-        record["centroid_env"] = change.cluster.centroid.tolist()
+    prepared = {name: load_model(name) for name in dict.fromkeys(str(c.object_name) for c in posed)}
+
+    def record(change: Change) -> dict[str, Any]:
+        out = change.to_json()
+        out["centroid_env"] = change.cluster.centroid.tolist()
         if change in posed and scene is not None:
             name = str(change.object_name)
-            if name not in prepared:
-                prepared[name] = load_model(name)
-            record.update(
-                pose_change(
-                    change,
-                    prepared[name],
-                    scene,
-                    sight,
-                    list(classes).index(name),
-                    options,
-                )
-            )
-        records.append(record)
+            class_id = list(classes).index(name)
+            out.update(pose_change(change, prepared[name], scene, sight, class_id, options))
+        return out
+
+    report("pose", 0.0)
+    n = max(len(result.changes), 1)
+    records = ordered_map(record, result.changes, options.threads, lambda k: report("pose", k / n))
     report("pose", 1.0)
     return records

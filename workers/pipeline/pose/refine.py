@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
@@ -40,6 +39,7 @@ from workers.pipeline.pose.candidates import (
 from workers.pipeline.pose.fit import (
     ModelSurface,
     fit_scene_to_model,
+    fitness_and_rmse,
     hull_normals,
     icp_point_to_plane,
     lowest_height,
@@ -52,8 +52,6 @@ from workers.pipeline.pose.fit import (
 )
 from workers.pipeline.pose.result import Trial
 from workers.pipeline.pose.top_view import fit_top_view, outline_costs, stands_flat
-
-REG = o3d.pipelines.registration
 
 
 @dataclass(frozen=True)
@@ -118,7 +116,6 @@ class Refiner:
     (:meth:`_finish`) by id."""
 
     ctx: FitContext
-    model_full: o3d.geometry.PointCloud
     mid_points: Points
     mid_normals: Points
     surface: ModelSurface
@@ -131,13 +128,11 @@ class Refiner:
 
     @classmethod
     def create(cls, ctx: FitContext) -> Refiner:
-        """A refiner with the model's full cloud and its ``v/2`` subsample."""
+        """A refiner with the model's ``v/2`` subsample."""
         m = ctx.model
-        model_full = make_cloud(m.points, m.normals, m.colors)
-        model_mid = model_full.voxel_down_sample(m.voxel_m / 2)
+        model_mid = make_cloud(m.points, m.normals, m.colors).voxel_down_sample(m.voxel_m / 2)
         return cls(
             ctx,
-            model_full,
             np.asarray(model_mid.points),
             normalised(np.asarray(model_mid.normals)),
             ModelSurface(m.points, m.normals),
@@ -330,9 +325,8 @@ class Refiner:
         """(fitness, inlier RMSE in metres) of ``env_from_object``: the share of every model
         point with a scene point within :attr:`inlier_distance_m`, and those distances'
         RMS."""
-        fine, dist_in = self.ctx.region.fine, self.inlier_distance_m
-        ev = REG.evaluate_registration(self.model_full, fine, dist_in, env_from_object)
-        return float(ev.fitness), float(ev.inlier_rmse)
+        posed = transform_points(env_from_object, self.ctx.model.points)
+        return fitness_and_rmse(self.ctx.region.target_fine.tree, posed, self.inlier_distance_m)
 
     def _picks(self, distinct: list[Trial]) -> list[Trial]:
         """The trials to refine this round: the best ``n_refine`` of ``distinct`` (best

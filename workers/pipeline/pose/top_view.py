@@ -334,12 +334,14 @@ def _bilinear(
     i, j = np.floor(cells[0]), np.floor(cells[1])
     on = (i >= 0) & (j >= 0) & (i < grid.shape[0] - 1) & (j < grid.shape[1] - 1)
     out = np.full(cells.shape[1], fill, dtype=np.float64)
-    i0, j0 = i[on].astype(int), j[on].astype(int)
+    i0, j0 = i[on].astype(np.intp), j[on].astype(np.intp)
     fi, fj = cells[0][on] - i0, cells[1][on] - j0
+    flat, row = grid.ravel(), grid.shape[1]
+    at = i0 * row + j0  # flat index of (i0, j0); taking from the flat grid is the fast gather
     out[on] = (
-        grid[i0, j0] * (1 - fi) * (1 - fj)
-        + grid[i0 + 1, j0] * fi * (1 - fj)
-        + grid[i0, j0 + 1] * (1 - fi) * fj
-        + grid[i0 + 1, j0 + 1] * fi * fj
+        flat.take(at) * (1 - fi) * (1 - fj)
+        + flat.take(at + row) * fi * (1 - fj)
+        + flat.take(at + 1) * (1 - fi) * fj
+        + flat.take(at + row + 1) * fi * fj
     )
     return out

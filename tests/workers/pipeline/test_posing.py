@@ -16,6 +16,7 @@ from workers.pipeline.errors import RegistrationError
 from workers.pipeline.pose import posing as posing_module
 from workers.pipeline.pose.options import POSE_PRESETS, PoseOptions
 from workers.pipeline.pose.posing import cameras_from_json, pose_changes
+from workers.pipeline.pose.verify import FINAL_TURN_REASON, RUNNER_UP_REASON
 
 
 def test_cameras_from_json_inverts_env_from_cam_and_sorts_by_name() -> None:
@@ -102,3 +103,65 @@ def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.Monk
         o == dataclasses.replace(POSE_PRESETS["thorough"], max_rounds=1) for o in used
     )
     assert all(r["pose"] is None and not r["pose_quality"]["verified"] for r in records)
+
+
+def _photo_fits(
+    monkeypatch: pytest.MonkeyPatch, costs: dict[float, float | None]
+) -> list[np.ndarray]:
+    """Near-tie poses (shifted along x by each key) whose photo fit costs the value (None:
+    no photo shows all of it); :func:`posing._on_photo_edges` answers from the table."""
+
+    def fake(model: Any, pose: np.ndarray, sight: Any, options: Any) -> Any:
+        cost = costs[float(pose[0, 3])]
+        if cost is None:
+            return None
+        turned = [f"turned {pose[0, 3]:.0f}"]
+        return pose, {"cost_px": cost}, (FINAL_TURN_REASON,), turned
+
+    monkeypatch.setattr(posing_module, "_on_photo_edges", fake)
+    poses = []
+    for x in costs:
+        pose = np.eye(4)
+        pose[0, 3] = x
+        poses.append(pose)
+    return poses
+
+
+@pytest.mark.parametrize(
+    ("costs", "settled_for"),
+    [
+        ({0.0: 0.2, 1.0: 0.5, 2.0: 1.0}, 0),  # every near-tie ≥ 2 × the chosen pose's cost
+        ({0.0: 0.3, 1.0: 0.5, 2.0: 1.0}, None),  # one near-tie within 2 ×: not settled
+        ({0.0: 0.8, 1.0: 0.25, 2.0: 0.9}, 1),  # the photos prefer a near-tie by 3 ×
+        ({0.0: 0.2, 1.0: 1.0, 2.0: None}, None),  # a near-tie no photo shows: not settled
+    ],
+)
+def test_the_photos_edges_settle_a_near_tie_only_by_twice_the_cost(
+    monkeypatch: pytest.MonkeyPatch, costs: dict[float, float | None], settled_for: int | None
+) -> None:
+    chosen, *near_ties = _photo_fits(monkeypatch, costs)
+    moved = posing_module._on_photo_edges(None, chosen, None, None)  # type: ignore[arg-type]
+    quality: dict[str, Any] = {"runner_up_ratio": 0.97, "chosen_by": "score"}
+    reasons = [f"{RUNNER_UP_REASON} 0.97 of the best (> 0.85)", f"{FINAL_TURN_REASON} 4°", "x"]
+    pose, left = posing_module._photo_step(
+        None,
+        moved,
+        near_ties,
+        None,
+        None,
+        quality,
+        reasons,  # type: ignore[arg-type]
+    )
+    if settled_for is None:
+        assert "settled_by_photo_edges" not in quality
+        assert pose is chosen and left == [reasons[0], "x", "turned 0"]
+        return
+    # the winner's own photo turn is judged; a near-tie switched to keeps the pose step's
+    # reasons, a confirmation of its last fit was about another pose
+    kept = ["x"] if settled_for == 0 else [reasons[1], "x"]
+    assert left == [*kept, f"turned {settled_for}"]
+    assert quality["settled_by_photo_edges"]["switched"] == (settled_for != 0)
+    expected = chosen if settled_for == 0 else near_ties[settled_for - 1]
+    assert pose is expected
+    if settled_for:
+        assert quality["chosen_by"] == "photo_edges" and quality["runner_up_ratio"] is None

@@ -46,6 +46,9 @@ RIVAL_IOU_MARGIN = 0.1
 #: how much larger the pose step's choice's visible fitness must be than any distinct
 #: near-tie's before the tie counts as settled by what the cameras saw
 RIVAL_SEEN_MARGIN = 0.04
+#: how many times every other distinct near-tie's mean distance to the photos' edges must
+#: exceed one's (each fitted to them alike) before the photos settle the tie for it
+RIVAL_PHOTO_RATIO = 2.0
 #: the environment's up: z (the markers' floor normal); the pose step and the box
 #: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
@@ -125,14 +128,14 @@ def pose_change(
     quality = pose.quality_json()
     quality["chosen_by"] = pose.chosen_by
     reasons = list(pose.rejections)
+    rivals = _rivals(pose, model, options)
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
-        # A distinct pose fits the cloud almost as well (a near-symmetric object, such as a
-        # bracket turned end for end, a hammer on either face). What the cameras saw of each
-        # pose (visible fitness) settles the tie when it clearly prefers the pose step's
-        # choice; else the detector's boxes choose among the near-ties that stand the same
-        # way up (the pose step chose that), settling the tie when the choice re-projects
-        # clearly better than every near-tie.
-        candidates = [chosen, *_rivals(pose, model, options)]
+        # A distinct pose fits the cloud almost as well (a near-symmetric object, a hammer
+        # on either face). What the cameras saw of each pose (visible fitness) settles the
+        # tie when it clearly prefers the pose step's choice; else the detector's boxes
+        # choose among the near-ties standing the same way up, settling the tie when the
+        # choice re-projects clearly better than every one; else the photos' edges may.
+        candidates = [chosen, *rivals]
         checks = [check, *(check_of(alt) for alt in candidates[1:])]
         by_sight = _tiebreak(candidates, [seen_of(c) for c in candidates], model)
         by_boxes = _tiebreak(candidates, [c.mean_iou for c in checks], model)
@@ -154,11 +157,11 @@ def pose_change(
                     "mean_iou": round(by_boxes.value, 4),
                     "best_rival_iou": round(by_boxes.rival, 4),
                 }
+    near_ties = [p for p in [pose.env_from_object, *rivals] if p is not chosen]
     moved = _on_photo_edges(model, chosen, sight, options)
     if moved is not None:
-        chosen, quality["photo_edges"], settled, turned = moved
+        chosen, reasons = _photo_step(model, moved, near_ties, sight, options, quality, reasons)
         quality.update(_fit_figures(model, scene, chosen, pose.inlier_distance_m))
-        reasons = [r for r in reasons if not r.startswith(settled)] + turned
         check = check_of(chosen)
     quality["visible_fitness"] = seen_of(chosen)
     reasons += check.rejections()
@@ -176,8 +179,7 @@ def _on_photo_edges(
     used, mean pixels to the edges before and after, the turn, degrees modulo symmetry, and
     shift, metres, from ``env_from_object``); how the reasons the photos settle begin (the
     last fits' disagreement on the turn when the photos turned the pose by at most
-    ``photo_edges_confirm_deg``: they confirm the last fit; near-ties they do not settle: a
-    pose on the wrong face can fit the photos' edges as closely); and the reason it is not
+    ``photo_edges_confirm_deg``: they confirm the last fit); and the reason it is not
     verified when that turn exceeds ``max_final_turn_deg`` (the scan and the photos
     disagree). A fit that lowers no cost keeps ``env_from_object``. None: no photo shows
     all of it (``photo_edges_max_views`` 0: never)."""
@@ -207,6 +209,83 @@ def _on_photo_edges(
     limit = options.max_final_turn_deg
     turned = [f"the photos' edges turned the pose by {turn:.1f}° (> {limit:.1f}°)"]
     return fit.env_from_object, figures, settled, turned if turn > limit else []
+
+
+_Moved = tuple[Mat4, dict[str, Any], tuple[str, ...], list[str]]
+
+
+@dataclass(frozen=True)
+class _PhotoTie:
+    """The near-tie the photos' edges settle for: ``index`` into [the chosen pose, *the
+    near-ties], its :func:`_on_photo_edges` result (``winner``) and the mean pixel costs of
+    it and of the best other."""
+
+    index: int
+    winner: _Moved
+    cost_px: float
+    rival_px: float
+
+    def to_json(self) -> dict[str, Any]:
+        """``{"cost_px", "best_rival_px", "switched"}``."""
+        return {
+            "cost_px": round(self.cost_px, 4),
+            "best_rival_px": round(self.rival_px, 4),
+            "switched": self.index != 0,
+        }
+
+
+def _photo_step(
+    model: PreparedModel,
+    moved: _Moved,
+    near_ties: Sequence[Mat4],
+    sight: CaptureSight,
+    options: PoseOptions,
+    quality: dict[str, Any],
+    reasons: list[str],
+) -> tuple[Mat4, list[str]]:
+    """The pose the photos' edges hold (``moved``, its figures put in ``quality``) and the
+    reasons left: a near-tie they settle (:func:`_photo_tiebreak`) is dropped, for the
+    near-tie they prefer if it is not the chosen pose (then the pose step's reasons all
+    stand), else the last fits' disagreement they confirm; their turn beyond the limit is
+    added."""
+    chosen, quality["photo_edges"], settled, turned = moved
+    tie = None
+    if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
+        tie = _photo_tiebreak(model, moved, near_ties, sight, options)
+    if tie is not None:
+        quality["settled_by_photo_edges"] = tie.to_json()
+        reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
+        if tie.index != 0:  # the pose step's reasons stand: they were not about this pose
+            chosen, quality["photo_edges"], _, turned = tie.winner
+            settled = ()
+            # the pose step measured these of its own choice only
+            quality.update(dict.fromkeys(CHOICE_FIGURES))
+            quality["chosen_by"] = "photo_edges"
+    return chosen, [r for r in reasons if not r.startswith(settled)] + turned
+
+
+def _photo_tiebreak(
+    model: PreparedModel,
+    moved: _Moved,
+    near_ties: Sequence[Mat4],
+    sight: CaptureSight,
+    options: PoseOptions,
+) -> _PhotoTie | None:
+    """Each distinct near-tie fitted to the photos' edges as the chosen pose was
+    (``moved``): the one whose cost every other's exceeds :data:`RIVAL_PHOTO_RATIO` times.
+    None when none does, or when a near-tie has no photo that shows all of it."""
+    fits = [moved]
+    for alt in near_ties:
+        fit = _on_photo_edges(model, alt, sight, options)
+        if fit is None:
+            return None
+        fits.append(fit)
+    costs = [float(f[1]["cost_px"]) for f in fits]
+    best = int(np.argmin(costs))
+    rival = min((c for i, c in enumerate(costs) if i != best), default=float("inf"))
+    if rival < RIVAL_PHOTO_RATIO * costs[best]:
+        return None
+    return _PhotoTie(best, fits[best], costs[best], rival)
 
 
 @dataclass(frozen=True)

@@ -143,12 +143,13 @@ def test_the_photos_edges_settle_a_near_tie_only_by_twice_the_cost(
     moved = posing_module._on_photo_edges(None, chosen, None, None)  # type: ignore[arg-type]
     quality: dict[str, Any] = {"runner_up_ratio": 0.97, "chosen_by": "score"}
     reasons = [f"{RUNNER_UP_REASON} 0.97 of the best (> 0.85)", f"{FINAL_TURN_REASON} 4°", "x"]
+    options = POSE_PRESETS["default"]
     pose, left = posing_module._photo_step(
         None,
         moved,
         near_ties,
         None,
-        None,
+        options,
         quality,
         reasons,  # type: ignore[arg-type]
     )

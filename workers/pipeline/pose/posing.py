@@ -272,14 +272,15 @@ def _photo_tiebreak(
     options: PoseOptions,
 ) -> _PhotoTie | None:
     """Each distinct near-tie fitted to the photos' edges as the chosen pose was
-    (``moved``): the one whose cost every other's exceeds :data:`RIVAL_PHOTO_RATIO` times.
-    None when none does, or when a near-tie has no photo that shows all of it."""
-    fits = [moved]
-    for alt in near_ties:
-        fit = _on_photo_edges(model, alt, sight, options)
-        if fit is None:
-            return None
-        fits.append(fit)
+    (``moved``; the near-ties on ``options.threads`` threads): the one whose cost every
+    other's exceeds :data:`RIVAL_PHOTO_RATIO` times. None when none does, or when a
+    near-tie has no photo that shows all of it."""
+    others = ordered_map(
+        lambda alt: _on_photo_edges(model, alt, sight, options), near_ties, options.threads
+    )
+    fits = [moved, *(f for f in others if f is not None)]
+    if len(fits) <= len(near_ties):
+        return None
     costs = [float(f[1]["cost_px"]) for f in fits]
     best = int(np.argmin(costs))
     rival = min((c for i, c in enumerate(costs) if i != best), default=float("inf"))

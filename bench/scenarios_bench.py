@@ -163,6 +163,7 @@ QUALITY_FIGURES = (
     "settled_by_visibility",
     "settled_by_reprojection",
     "settled_by_outline",
+    "settled_by_photo_edges",
     "photo_edges",
     "reprojection",
 )

@@ -178,8 +178,9 @@ def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
     """The pose step chose the plate 0.5° off, its last fits disagreeing by more than
     ``max_final_turn_deg``, and the plate turned over scores almost as well. The photos
     turn the choice back by under ``photo_edges_confirm_deg``: they confirm the last fit,
-    whose disagreement no longer rejects the pose; the near-tie stays (a pose on another
-    face can fit the edges as closely). Started 4° off, the photos turn it back too, by
+    whose disagreement no longer rejects the pose; the plate turned over, fitted to them
+    alike, leaves more than twice their distance: they settle the near-tie for the choice.
+    Started 4° off, the photos turn it back too, by
     more than ``max_final_turn_deg``: the scan and the photos disagree, unverified. Without
     photos the pose step's pose stands."""
     model, true, capture = setting
@@ -206,7 +207,9 @@ def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
         assert symmetric_pose_error(np.asarray(out["pose"]), true, SymmetrySpec())[1] < 0.5
         edges = quality["photo_edges"]
         assert edges["views"] == 8 and abs(edges["turn_deg"] - off_deg) < 0.5, edges
-        assert any(r.startswith(RUNNER_UP_REASON) for r in reasons), reasons
+        assert not any(r.startswith(RUNNER_UP_REASON) for r in reasons), reasons
+        tie = quality["settled_by_photo_edges"]
+        assert not tie["switched"] and tie["best_rival_px"] >= 2 * tie["cost_px"], tie
         assert (disagree in reasons) is not confirmed, reasons
         photos_disagree = any(r.startswith("the photos' edges turned the pose by") for r in reasons)
         assert photos_disagree is not confirmed, reasons

@@ -37,6 +37,7 @@ from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptio
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.photo_edges import CaptureSight
 from workers.pipeline.pose.posing import pose_change
 from workers.pipeline.threads import ordered_map
@@ -287,13 +288,15 @@ class _Posing:
     scene: SceneCloud | None
     sight: CaptureSight
     options: InventoryOptions
+    compare_options: CompareOptions
+    pose_options: PoseOptions
 
 
 def _pose_segment(
     p: _Posing, cluster: ClusterResult, name: str
 ) -> tuple[InventoryObject | None, dict[str, Any] | None]:
     """One identified segment posed and checked: (the object, None) or (None, why not)."""
-    compare_options = p.options.compare_options()
+    compare_options = p.compare_options
     ident = cluster.identification_json(name)
     ident.pop("object", None)
     pose: dict[str, Any] = {}
@@ -301,7 +304,7 @@ def _pose_segment(
     class_id = list(p.classes).index(name)
     if model is not None and p.scene is not None:
         change = Change(f"segment-{cluster.id}", "added", name, None, cluster)
-        pose = pose_change(change, model, p.scene, p.sight, class_id, p.options.pose_options())
+        pose = pose_change(change, model, p.scene, p.sight, class_id, p.pose_options)
     quality = pose.get("pose_quality")
     passed = bool(quality and (quality.get("reprojection") or {}).get("passed"))
     reasons = [str(r) for r in (quality or {}).get("reasons") or ["no pose"]]
@@ -345,20 +348,22 @@ def _pose_segments(
     """Each identified segment posed as the pose stage poses a change (the pose options'
     ``threads`` at once); those whose posed model misses the detector's boxes are rejected
     (``require_reprojection``)."""
-    weak = _weakly_named(seg.segments, class_diameters_m, options.compare_options())
+    compare_options, pose_options = options.compare_options(), options.pose_options()
+    weak = _weakly_named(seg.segments, class_diameters_m, compare_options)
     named = [(c, str(c.object_name)) for c in seg.segments if c.object_name is not None]
     named += [(c, name) for c, name in weak.items()]
     scene = SceneCloud.create(capture.points_env, colors=capture.colors) if named else None
     wanted = dict.fromkeys(name for _, name in named if name in class_diameters_m)
     prepared = {name: load_model(name) for name in wanted} if scene is not None else {}
+    sight = CaptureSight(capture, seg.maps)
     posing = _Posing(
-        capture, classes, seg, weak, prepared, scene, CaptureSight(capture, seg.maps), options
+        capture, classes, seg, weak, prepared, scene, sight, options, compare_options, pose_options
     )
     report("inventory.pose", 0.4)
     outcomes = ordered_map(
         lambda item: _pose_segment(posing, *item),
         named,
-        options.pose_options().threads,
+        pose_options.threads,
         lambda k: report("inventory.pose", 0.4 + 0.6 * k / len(named)),
     )
     found = [obj for obj, _ in outcomes if obj is not None]

@@ -219,10 +219,16 @@ def fitness_and_rmse(tree: cKDTree, points: Points, max_distance_m: float) -> tu
     with a scene point within ``max_distance_m``, and those distances' RMS (metres; 0 when
     none). Summed here in one order, so they do not depend on how many threads run."""
     d, _ = tree.query(points, distance_upper_bound=max_distance_m)
-    near = d[np.isfinite(d)]
+    return inlier_figures(d)
+
+
+def inlier_figures(distances: NDArray[np.float64]) -> tuple[float, float]:
+    """(share of the (N,) distances that are finite, their RMS in metres; 0 when none): the
+    fitness and inlier RMSE of points whose distances beyond the inlier distance are inf."""
+    near = distances[np.isfinite(distances)]
     if near.size == 0:
         return 0.0, 0.0
-    return near.size / len(points), float(np.sqrt(np.mean(near**2)))
+    return near.size / len(distances), float(np.sqrt(np.mean(near**2)))
 
 
 def exclusion_factor(

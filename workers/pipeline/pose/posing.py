@@ -26,6 +26,7 @@ from workers.pipeline.model.symmetry_group import symmetric_pose_error
 from workers.pipeline.pose.candidates import distinct_pose, upright
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
+from workers.pipeline.pose.fit import inlier_figures
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
@@ -279,7 +280,7 @@ def _photo_tiebreak(
         lambda alt: _on_photo_edges(model, alt, sight, options), near_ties, options.threads
     )
     fits = [moved, *(f for f in others if f is not None)]
-    if len(fits) <= len(near_ties):
+    if len(fits) < 1 + len(near_ties):  # a near-tie no photo shows all of
         return None
     costs = [float(f[1]["cost_px"]) for f in fits]
     best = int(np.argmin(costs))
@@ -353,10 +354,8 @@ def _fit_figures(
     """``fitness`` (share of model points within ``inlier_distance_m`` of the scene) and
     ``inlier_rmse`` (metres) of a pose, as the pose step reports them."""
     posed = transform_points(env_from_object, model.points)
-    d = scene_distances(posed, scene.points, inlier_distance_m)
-    inliers = d[np.isfinite(d)]
-    rmse = float(np.sqrt(np.mean(inliers**2))) if len(inliers) else 0.0
-    return {"fitness": float(len(inliers) / len(posed)), "inlier_rmse": rmse}
+    fitness, rmse = inlier_figures(scene_distances(posed, scene.points, inlier_distance_m))
+    return {"fitness": fitness, "inlier_rmse": rmse}
 
 
 def pose_changes(

@@ -16,7 +16,8 @@ is scored against the capture's true placements:
 - **twin**: the service's rules run on the world's two snapshots (baseline from the first
   inventory; the comparison's changes posed as the comparison job does; the second
   inventory confirms, refreshes beyond :data:`app.core.inventory.DRIFT_TRANSLATION_M` /
-  ``DRIFT_ROTATION_DEG``, adds posed objects nothing accounts for) against the after
+  ``DRIFT_ROTATION_DEG`` where :func:`app.core.inventory.takes_inventory_pose` lets it,
+  adds posed objects nothing accounts for) against the after
   capture's truth: every object with class and pose within 1 cm / 3°, nothing extra;
 - **time**: the inventory's wall and CPU seconds per capture beside the compare stage's on
   the same pair in the same run (the baseline), on this machine's cores.
@@ -40,7 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.inventory import match_reach_m, moved_beyond_noise
+from app.core.inventory import match_reach_m, moved_beyond_noise, takes_inventory_pose
 from bench.scenarios_bench import (
     ROOT,
     TMP,
@@ -214,7 +215,12 @@ def score_capture(
 
 def _twin_from(result: InventoryResult) -> list[dict[str, Any]]:
     return [
-        {"id": f"inv-{i}", "object": o.object_name, "pose": o.env_from_object.tolist()}
+        {
+            "id": f"inv-{i}",
+            "object": o.object_name,
+            "pose": o.env_from_object.tolist(),
+            "quality": o.pose_quality,
+        }
         for i, o in enumerate(result.objects)
         if o.env_from_object is not None
     ]
@@ -251,19 +257,20 @@ def twin_check(
     touched: set[str] = set()
     for r in records:
         kind = r["type"]
+        posed = {"object": r["object"], "pose": r.get("pose"), "quality": r.get("pose_quality")}
         if kind == "added" and r.get("pose") is not None:
-            by_id[r["id"]] = {"id": r["id"], "object": r["object"], "pose": r["pose"]}
+            by_id[r["id"]] = {"id": r["id"], **posed}
             touched.add(r["id"])
         elif kind == "removed":
             by_id.pop(str(r.get("instance_id")), None)
         elif kind == "moved" and r.get("pose") is not None:
             iid = str(r.get("instance_id"))
-            by_id[iid] = {"id": iid, "object": r["object"], "pose": r["pose"]}
+            by_id[iid] = {"id": iid, **posed}
             touched.add(iid)
         elif kind == "swapped":
             by_id.pop(str(r.get("replaced_instance_id")), None)
             if r.get("pose") is not None:
-                by_id[r["id"]] = {"id": r["id"], "object": r["object"], "pose": r["pose"]}
+                by_id[r["id"]] = {"id": r["id"], **posed}
                 touched.add(r["id"])
     # the second inventory confirms (app.core.inventory.confirm's rules)
     found = [o.to_json() for o in inv_after.objects if o.env_from_object is not None]
@@ -274,7 +281,7 @@ def twin_check(
     drifted = 0
     for i, j in pairs:
         f = found[j]
-        verified = bool((f["pose_quality"] or {}).get("verified"))
+        takes = takes_inventory_pose(current[i]["pose"], current[i]["quality"], f["pose_quality"])
         fresh = current[i]["id"] not in touched
         symmetric = bool((f["pose_quality"] or {}).get("ambiguous"))
         model = models[f["object"]]
@@ -285,8 +292,8 @@ def twin_check(
             centre_of(f["pose"], model)[:3],
             symmetric,
         )
-        if verified and fresh and moved:
-            current[i]["pose"] = f["pose"]
+        if takes and fresh and moved:
+            current[i]["pose"], current[i]["quality"] = f["pose"], f["pose_quality"]
             drifted += 1
     paired = {j for _, j in pairs}
     added = [

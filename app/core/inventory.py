@@ -11,9 +11,10 @@ When the twin reaches the snapshot (app.core.twin.advance):
 - a **later** snapshot, once its comparison's changes are applied, confirms the open
   instances it shows (:func:`confirm`): the object is linked to the instance (so
   ``last_seen_snapshot`` moves on); the pose is refreshed, with a record ``drifted``, only
-  when the inventory's verified pose is further from the twin's than the pose estimate's
-  noise (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a
-  slow drift no single comparison flagged; a posed object no instance accounts for is
+  when the inventory's pose is further from the twin's than the pose estimate's noise
+  (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a slow
+  drift no single comparison flagged, and may replace it (:func:`takes_inventory_pose`:
+  verified, or both unverified estimates); a posed object no instance accounts for is
   added (``inventoried``), as the first snapshot would have. An instance no object confirms
 keeps its state: not seen.
 
@@ -23,7 +24,7 @@ Never commits.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -286,6 +287,20 @@ def moved_beyond_noise(
     return not symmetric and _rotation_deg(a, b) > DRIFT_ROTATION_DEG
 
 
+def takes_inventory_pose(
+    twin_pose: Any, twin_quality: Mapping[str, Any] | None, found_quality: Mapping[str, Any] | None
+) -> bool:
+    """Whether an inventory's pose (its ``pose_quality``) may replace an instance's pose (and
+    its quality): a verified one always, any where the instance has none; an unverified one
+    where the instance's pose is an unverified estimate too, as the newer of the two. A pose
+    without figures (given by the twin platform or by hand) gives way to verified ones only."""
+    if twin_pose is None or bool((found_quality or {}).get("verified")):
+        return True
+    return (
+        found_quality is not None and twin_quality is not None and not twin_quality.get("verified")
+    )
+
+
 def confirm(
     session: Session, env: Environment, head: Snapshot, comparison_id: str | None
 ) -> dict[str, list[TwinInstance]]:
@@ -301,12 +316,11 @@ def confirm(
     for instance, obj in matched:
         obj.instance_id = instance.id
         out["seen"].append(instance)
-        verified = bool((obj.pose_quality or {}).get("verified"))
         touched = instance.since_snapshot_id == head.id  # the comparison just posed it
         if (
             obj.pose is not None
-            and verified
             and not touched
+            and takes_inventory_pose(instance.pose, instance.pose_quality, obj.pose_quality)
             and moved_beyond_noise(
                 instance.pose,
                 obj.pose,

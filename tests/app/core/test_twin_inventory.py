@@ -1,7 +1,8 @@
 """The twin and the snapshots' inventories (app.core.inventory through app.core.twin.advance):
 the first snapshot fills the twin, taking over a seeded instance where it stands; a later
-one confirms what it sees, refreshes a pose only beyond the estimate's noise, and adds what
-no instance accounts for."""
+one confirms what it sees, refreshes a pose only beyond the estimate's noise (an unverified
+estimate only where the twin's own pose is one too), and adds what no instance accounts
+for."""
 
 from __future__ import annotations
 
@@ -174,6 +175,52 @@ def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
     seen = inventory.last_seen(session, [i.id for i in current])
     assert seen[by_x[0.1].id] == second.id and seen[by_x[0.53].id] == second.id
     assert seen[by_x[-0.6].id] == first.id  # not seen by the second: keeps its state
+
+
+def test_an_unverified_twin_pose_gives_way_to_a_newer_estimate_a_verified_one_does_not(
+    session: Session, env: Environment
+) -> None:
+    first = snapshot(session, env, 1)
+    reconstructed(
+        session,
+        first,
+        [found("bowl", pose_at(0.5, yaw_deg=170.0), verified=False), found("drill", pose_at(0.1))],
+    )
+    # seq 2 sees both again, unverified, beyond the noise: the bowl's estimate was as unsure
+    # as this one and is replaced; the drill's verified pose stands
+    second = snapshot(session, env, 2)
+    reconstructed(
+        session,
+        second,
+        [
+            found("bowl", pose_at(0.5), verified=False),
+            found("drill", pose_at(0.1, yaw_deg=20.0), verified=False),
+        ],
+    )
+    succeed_comparison(session, env, first, second)
+    by_name = {i.object_name: i for i in twin.current(session, env.id)}
+    bowl, drill = by_name["bowl"], by_name["drill"]
+    assert history(session, bowl.id) == ["inventoried", "drifted"]
+    assert np.allclose(bowl.pose, pose_at(0.5)) and bowl.pose_quality == {
+        "verified": False,
+        "reasons": [],
+    }
+    assert history(session, drill.id) == ["inventoried"]
+    assert np.allclose(drill.pose, pose_at(0.1))
+
+
+def test_which_pose_may_replace_which() -> None:
+    verified, unverified, pose = {"verified": True}, {"verified": False}, pose_at(0.1)
+    assert inventory.takes_inventory_pose(pose, verified, verified)
+    assert inventory.takes_inventory_pose(pose, unverified, verified)
+    assert inventory.takes_inventory_pose(pose, None, verified)
+    assert inventory.takes_inventory_pose(pose, unverified, unverified)
+    assert not inventory.takes_inventory_pose(pose, verified, unverified)
+    # a pose the twin platform or a person gave has no figures: only a verified one replaces it
+    assert not inventory.takes_inventory_pose(pose, None, unverified)
+    assert not inventory.takes_inventory_pose(pose, unverified, None)
+    # an instance without a pose takes any
+    assert inventory.takes_inventory_pose(None, None, unverified)
 
 
 def test_moved_beyond_noise() -> None:

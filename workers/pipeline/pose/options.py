@@ -75,8 +75,9 @@ class PoseOptions:
     colour_margin: float = 0.02
     # support-plane band, voxels (≤ max_inlier_distance_m): removed, penalised below; 0 = off
     support_band_voxels: float = 0.5
-    # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables
-    max_sink_m: float = 0.01
+    # a final pose sunk up to this far into its support is lifted onto it, metres; 0 disables;
+    # keep it well under the height between two supports (a table above the floor)
+    max_sink_m: float = 0.02
     # a final pose within max_sink_m of its support whose base (else a hull face it can rest
     # on) nearest the plane is tilted at most this much, degrees, is set flat on it (turn
     # and shift across it refitted); 0 disables; lower where objects lean on things

@@ -206,6 +206,11 @@ def test_a_pose_sunk_into_its_support_is_lifted_onto_it() -> None:
         assert out_of_support(pose, box, floor, underneath, 0.01, 0.01) is pose
     assert out_of_support(pose, box, None, around, 0.01, 0.01) is pose
     assert out_of_support(pose, box, floor, around, 0.0, 0.01) is pose
+    # by default a fit sunk 15 mm (as mugs and hammers of the tuning inventory were) is lifted
+    pose = make_rigid(tilt, [0.3, -0.2, 0.0])
+    pose[:3, 3] += [0, 0, 0.1 - transform_points(pose, box)[:, 2].min() - 0.015]
+    out = out_of_support(pose, box, floor, around, PoseOptions().max_sink_m, 0.01)
+    assert transform_points(out, box)[:, 2].min() == pytest.approx(0.1, abs=1e-12)
 
 
 @pytest.mark.parametrize("seed", [1, 2])

@@ -151,8 +151,7 @@ def test_the_photos_edges_settle_a_near_tie_only_by_twice_the_cost(
         None,
         options,
         quality,
-        reasons,
-        None,  # type: ignore[arg-type]
+        reasons,  # type: ignore[arg-type]
     )
     if settled_for is None:
         assert "settled_by_photo_edges" not in quality

@@ -156,6 +156,5 @@ def estimate_pose(
         rotation_slack_deg=fit.rotation_slack_deg,
         final_turn_deg=fit.final_turn_deg,
         settled_by_outline=fit.settled_by_outline,
-        unkept_fit_env_from_object=fit.unkept_fit,
         timings_s=timings,
     )

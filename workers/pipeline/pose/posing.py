@@ -126,7 +126,8 @@ def pose_change(
 
     chosen = pose.env_from_object
     check = check_of(chosen)
-    quality = pose.quality_json() | {"chosen_by": pose.chosen_by}
+    quality = pose.quality_json()
+    quality["chosen_by"] = pose.chosen_by
     reasons = list(pose.rejections)
     rivals = _rivals(pose, model, options)
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
@@ -157,11 +158,10 @@ def pose_change(
                     "mean_iou": round(by_boxes.value, 4),
                     "best_rival_iou": round(by_boxes.rival, 4),
                 }
-    ties = [p for p in [pose.env_from_object, *rivals] if p is not chosen]
+    near_ties = [p for p in [pose.env_from_object, *rivals] if p is not chosen]
     moved = _on_photo_edges(model, chosen, sight, options)
     if moved is not None:
-        unkept = pose.unkept_fit_env_from_object
-        chosen, reasons = _photo_step(model, moved, ties, sight, options, quality, reasons, unkept)
+        chosen, reasons = _photo_step(model, moved, near_ties, sight, options, quality, reasons)
         quality.update(_fit_figures(model, scene, chosen, pose.inlier_distance_m))
         check = check_of(chosen)
     quality["visible_fitness"] = seen_of(chosen)
@@ -243,14 +243,12 @@ def _photo_step(
     options: PoseOptions,
     quality: dict[str, Any],
     reasons: list[str],
-    unkept_fit: Mat4 | None,
 ) -> tuple[Mat4, list[str]]:
     """The pose the photos' edges hold (``moved``, its figures put in ``quality``) and the
     reasons left: a near-tie they settle (:func:`_photo_tiebreak`) is dropped, for the
     near-tie they prefer if it is not the chosen pose (then the pose step's reasons all
     stand), else the last fits' disagreement they confirm; their turn beyond the limit is
-    added. ``unkept_fit``: the pose step's last fit when not kept; how far the photos'
-    pose lies from it goes in ``quality["photo_edges"]["to_unkept_fit_deg"]``."""
+    added."""
     chosen, quality["photo_edges"], settled, turned = moved
     tie = None
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
@@ -264,9 +262,6 @@ def _photo_step(
             # the pose step measured these of its own choice only
             quality.update(dict.fromkeys(CHOICE_FIGURES))
             quality["chosen_by"] = "photo_edges"
-    if unkept_fit is not None:
-        turn = symmetric_pose_error(chosen, unkept_fit, model.symmetry, model.centre_object)[1]
-        quality["photo_edges"]["to_unkept_fit_deg"] = round(turn, 3)
     return chosen, [r for r in reasons if not r.startswith(settled)] + turned
 
 

@@ -78,8 +78,7 @@ class Refinement:
     on (0 otherwise); ``others``: every other refined pose, best first;
     ``settled_by_outline``: (its outline's cost per scan point, the least near-tie's) when
     the outline settled the near-ties of a flat pose (:meth:`Refiner._by_outline`), else
-    None; ``unkept_fit``: the scan-to-model fit's pose when it turned the ICP's pose by more
-    than ``max_final_turn_deg`` (not kept), else None."""
+    None."""
 
     env_from_object: Mat4
     score: float
@@ -93,15 +92,13 @@ class Refinement:
     tipped_deg: float = 0.0
     others: tuple[Refined, ...] = ()
     settled_by_outline: tuple[float, float] | None = None
-    unkept_fit: Mat4 | None = None
 
 
 @dataclass(frozen=True)
 class _Finished:
     """A refined pose after the winner's last steps (:meth:`Refiner._finish`): its
     ``env_from_object`` and the figures :class:`Refinement` reports of it (``evaluated``:
-    its :meth:`Refiner.evaluate` when already computed; ``unkept_fit``: the scan-to-model
-    fit's pose when it was not kept)."""
+    its :meth:`Refiner.evaluate` when already computed)."""
 
     refined: Refined
     env_from_object: Mat4
@@ -109,7 +106,6 @@ class _Finished:
     final_turn_deg: float
     tipped_deg: float
     evaluated: tuple[float, float] | None
-    unkept_fit: Mat4 | None = None
 
 
 @dataclass
@@ -356,7 +352,6 @@ class Refiner:
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         v = m.voxel_m
         slack = turn = 0.0
-        unkept: Mat4 | None = None
         icp_pose = icp_point_to_plane(
             m.points,
             m.normals,
@@ -386,15 +381,11 @@ class Refiner:
             turn = symmetric_pose_error(fitted, icp_pose, m.symmetry, m.centre_object)[1]
             if turn <= o.max_final_turn_deg:
                 env_from_object = fitted
-            else:
-                unkept = fitted
         env_from_object = out_of_support(
             env_from_object, m.points, region.support, region.on_support, o.max_sink_m, 2 * v
         )
         env_from_object, rest_turn, tipped, evaluated = self._at_rest(env_from_object, scene, reach)
-        done = _Finished(
-            refined, env_from_object, slack, max(turn, rest_turn), tipped, evaluated, unkept
-        )
+        done = _Finished(refined, env_from_object, slack, max(turn, rest_turn), tipped, evaluated)
         self.finished[id(refined)] = done
         return done
 
@@ -486,5 +477,4 @@ class Refiner:
             tipped_deg=won.tipped_deg,
             others=tuple(r for r in self.refined if r is not won.refined),
             settled_by_outline=settled,
-            unkept_fit=won.unkept_fit,
         )

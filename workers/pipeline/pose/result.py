@@ -48,9 +48,7 @@ class PoseResult:
     (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`); ``final_turn_deg``: how far the
     last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed);
     ``settled_by_outline``: (the chosen pose's outline cost per scan point, the best
-    near-tie's) when a flat object's outline settled its near-ties, else None;
-    ``unkept_fit_env_from_object``: the last fit's pose when it turned the ICP's pose by
-    more than ``max_final_turn_deg`` and was not kept, else None."""
+    near-tie's) when a flat object's outline settled its near-ties, else None."""
 
     env_from_object: Mat4
     fitness: float
@@ -73,7 +71,6 @@ class PoseResult:
     rotation_slack_deg: float = 0.0
     final_turn_deg: float = 0.0
     settled_by_outline: tuple[float, float] | None = None
-    unkept_fit_env_from_object: Mat4 | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
 
     def quality_json(self) -> dict[str, Any]:

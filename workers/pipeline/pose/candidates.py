@@ -1,6 +1,7 @@
 """Step 2 of pose estimation: global candidates for ``env_from_object``.
 
-Starts: ICP from a previous pose when one is given, the cluster's principal axes, and
+Starts: ICP from a previous pose when one is given (as it stood, and its orientation set on
+the cluster, turned about the up axis: a moved object), the cluster's principal axes, and
 FPFH + RANSAC (scene → model against the model's whole-model and per-view descriptors,
 ``n_seeds`` seeds per round, stopping early once two starts agree). Each start is polished
 by a short point-to-plane ICP and scored by a truncated-quadratic inlier score (× the
@@ -26,6 +27,7 @@ from workers.pipeline.geometry import (
     Points,
     invert_rigid,
     make_rigid,
+    rotation_about_unit_axis,
     rounded_rigid,
     transform_points,
 )
@@ -43,6 +45,9 @@ from workers.pipeline.pose.result import Trial
 from workers.pipeline.seeded import seeded_open3d
 
 REG = o3d.pipelines.registration
+#: a previous orientation set on the cluster is tried turned about the up axis in this many
+#: steps (30°: within the polishing ICP's reach of any turn)
+PREVIOUS_TURNS = 12
 
 
 @dataclass(frozen=True)
@@ -219,8 +224,9 @@ def moment_candidates(model: PreparedModel, cluster: Points) -> list[Mat4]:
 
 
 def _start_candidates(pool: CandidatePool, inputs: PoseInputs) -> None:
-    """First-round starts independent of descriptors: the previous pose, then the four
-    principal-axis alignments of what of the cluster stands above the support."""
+    """First-round starts independent of descriptors: the previous pose, as it stood and
+    set on the cluster (:func:`previous_on_cluster`), then the four principal-axis
+    alignments of what of the cluster stands above the support."""
     if inputs.previous is not None:
         pool.polish(inputs.previous, "previous pose", time.perf_counter())
     cluster = inputs.cluster
@@ -232,8 +238,32 @@ def _start_candidates(pool: CandidatePool, inputs: PoseInputs) -> None:
         if support is not None:
             above = cluster[cluster @ support[:3] + support[3] > band]
             standing = above if len(above) >= 10 else cluster
+        for k, init in enumerate(previous_on_cluster(pool.ctx.model, inputs, standing)):
+            pool.polish(init, f"previous turned {k}", time.perf_counter())
         for k, init in enumerate(moment_candidates(pool.ctx.model, standing)):
             pool.polish(init, f"cluster axes {k}", time.perf_counter())
+
+
+def previous_on_cluster(model: PreparedModel, inputs: PoseInputs, standing: Points) -> list[Mat4]:
+    """The previous pose's orientation turned about the up axis in :data:`PREVIOUS_TURNS`
+    steps, each set with the model's centre over the (K, 3) ``standing`` cluster points'
+    mean and its lowest point at their lowest (env frame, metres): where a moved object,
+    slid or carried and set down on the same face, now stands (the previous pose itself
+    lies where it stood before). [] without a previous pose or standing points."""
+    if inputs.previous is None or len(standing) == 0:
+        return []
+    up = inputs.up
+    out = []
+    for k in range(PREVIOUS_TURNS):
+        turn = rotation_about_unit_axis(up, 2.0 * np.pi * k / PREVIOUS_TURNS)
+        r = turn @ inputs.previous[:3, :3]
+        centre = r @ model.centre_object
+        heights = model.points @ r.T @ up
+        across = standing.mean(axis=0) - centre
+        across -= (across @ up) * up
+        lift = float(np.min(standing @ up) - np.min(heights))
+        out.append(make_rigid(r, across + lift * up))
+    return out
 
 
 def _ransac_candidates(pool: CandidatePool, round_: int) -> None:

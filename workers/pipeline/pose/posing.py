@@ -99,14 +99,15 @@ def pose_change(
 ) -> dict[str, Any]:
     """Pose, quality and centre of one change seen by the after capture's ``sight``; a
     failed registration is reported on the change (``verified: false`` with the reason),
-    never dropped."""
+    never dropped. Only a move's previous pose is used (a swap's is the replaced object's)."""
     after, depth_maps = sight.capture, sight.depth_maps
+    previous = change.previous_env_from_object if change.type == "moved" else None
     try:
         pose = estimate_pose(
             model,
             scene,
             cluster_points_env=change.cluster.points_env,
-            previous_env_from_object=change.previous_env_from_object,
+            previous_env_from_object=previous,
             up_env=UP_ENV,
             free_space=depth_maps or (),
             options=options,
@@ -126,8 +127,7 @@ def pose_change(
 
     chosen = pose.env_from_object
     check = check_of(chosen)
-    quality = pose.quality_json()
-    quality["chosen_by"] = pose.chosen_by
+    quality = pose.quality_json() | {"chosen_by": pose.chosen_by}
     reasons = list(pose.rejections)
     rivals = _rivals(pose, model, options)
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):

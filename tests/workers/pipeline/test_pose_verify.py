@@ -287,7 +287,7 @@ def test_what_the_cameras_saw_settles_a_near_tie_for_the_pose_steps_choice(
         diameter_m=0.245,
     )
     change: Any = SimpleNamespace(
-        cluster=SimpleNamespace(points_env=scan), previous_env_from_object=None
+        type="added", cluster=SimpleNamespace(points_env=scan), previous_env_from_object=None
     )
     true, turned = scene.env_from_object, scene.env_from_object @ QUARTER_ABOUT_Y
     options = POSE_PRESETS["default"]

@@ -69,7 +69,8 @@ def test_unidentified_changes_get_a_centroid_and_no_model_is_loaded() -> None:
 
 
 def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.MonkeyPatch) -> None:
-    """The options a job posted reach :func:`estimate_pose` for every posed change."""
+    """The options a job posted reach :func:`estimate_pose` for every posed change; so does
+    a move's previous pose, and never a swap's (the replaced object's, another model)."""
     floor, cube = floor_and_cube()
     compare_options = options_from_json("thesis")
     after = CaptureData(points_env=np.vstack([floor, cube]))
@@ -77,16 +78,28 @@ def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.Monk
         CaptureData(points_env=floor), after, [], ["box"], {"box": 0.17}, compare_options
     )
     assert result.changes
+    before = np.eye(4)
+    before[:3, 3] = [-0.3, 0.1, 0.0]
+    kinds = ("added", "moved", "swapped")
     added = dataclasses.replace(
         result,
         changes=tuple(
-            dataclasses.replace(ch, type="added", object_name="box") for ch in result.changes
+            dataclasses.replace(
+                ch,
+                type=kind,
+                object_name="box",
+                previous_env_from_object=None if kind == "added" else before,
+            )
+            for ch in result.changes
+            for kind in kinds
         ),
     )
     used: list[PoseOptions] = []
+    previous: list[Any] = []
 
     def fake_estimate(*args: Any, options: PoseOptions, **kwargs: Any) -> Any:
         used.append(options)
+        previous.append(kwargs["previous_env_from_object"])
         raise RegistrationError("no candidate (test)")
 
     monkeypatch.setattr(posing_module, "estimate_pose", fake_estimate)
@@ -103,6 +116,8 @@ def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.Monk
         o == dataclasses.replace(POSE_PRESETS["thorough"], max_rounds=1) for o in used
     )
     assert all(r["pose"] is None and not r["pose_quality"]["verified"] for r in records)
+    for kind, given in zip(kinds * len(result.changes), previous, strict=True):
+        assert (given is before) == (kind == "moved"), kind
 
 
 def _photo_fits(

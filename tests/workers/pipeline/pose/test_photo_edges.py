@@ -138,7 +138,9 @@ def for_the_pose_step(model: Plate, diameter_m: float, capture: CaptureData) -> 
         diameter_m=diameter_m,
     )
     change = SimpleNamespace(
-        cluster=SimpleNamespace(points_env=capture.points_env), previous_env_from_object=None
+        type="added",
+        cluster=SimpleNamespace(points_env=capture.points_env),
+        previous_env_from_object=None,
     )
     return prepared, change
 

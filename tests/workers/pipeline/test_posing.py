@@ -78,20 +78,14 @@ def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.Monk
         CaptureData(points_env=floor), after, [], ["box"], {"box": 0.17}, compare_options
     )
     assert result.changes
-    before = np.eye(4)
-    before[:3, 3] = [-0.3, 0.1, 0.0]
-    kinds = ("added", "moved", "swapped")
+    # each kind's own previous pose (changes are posed on threads, in any order)
+    earlier = {"added": None, "moved": np.eye(4), "swapped": np.eye(4)}
     added = dataclasses.replace(
         result,
         changes=tuple(
-            dataclasses.replace(
-                ch,
-                type=kind,
-                object_name="box",
-                previous_env_from_object=None if kind == "added" else before,
-            )
+            dataclasses.replace(ch, type=kind, object_name="box", previous_env_from_object=pose)
             for ch in result.changes
-            for kind in kinds
+            for kind, pose in earlier.items()
         ),
     )
     used: list[PoseOptions] = []
@@ -116,8 +110,9 @@ def test_pose_changes_estimates_with_the_posted_options(monkeypatch: pytest.Monk
         o == dataclasses.replace(POSE_PRESETS["thorough"], max_rounds=1) for o in used
     )
     assert all(r["pose"] is None and not r["pose_quality"]["verified"] for r in records)
-    for kind, given in zip(kinds * len(result.changes), previous, strict=True):
-        assert (given is before) == (kind == "moved"), kind
+    assert len(previous) == 3 * len(result.changes)
+    assert sum(p is earlier["moved"] for p in previous) == len(result.changes)
+    assert all(p is None or p is earlier["moved"] for p in previous)
 
 
 def _photo_fits(

@@ -253,15 +253,14 @@ def previous_on_cluster(model: PreparedModel, inputs: PoseInputs, standing: Poin
     if inputs.previous is None or len(standing) == 0:
         return []
     up = inputs.up
+    mean, lowest = standing.mean(axis=0), np.min(standing @ up)
     out = []
     for k in range(PREVIOUS_TURNS):
         turn = rotation_about_unit_axis(up, 2.0 * np.pi * k / PREVIOUS_TURNS)
         r = turn @ inputs.previous[:3, :3]
-        centre = r @ model.centre_object
-        heights = model.points @ r.T @ up
-        across = standing.mean(axis=0) - centre
+        across = mean - r @ model.centre_object
         across -= (across @ up) * up
-        lift = float(np.min(standing @ up) - np.min(heights))
+        lift = float(lowest - np.min(model.points @ r.T @ up))
         out.append(make_rigid(r, across + lift * up))
     return out
 

@@ -328,6 +328,23 @@ def disparity_window(disparities: FloatArray, max_disparities: int) -> tuple[int
     return max(min_disp, 0), max_disparities
 
 
+def nearer_window(
+    disparities: FloatArray, first: tuple[int, int], max_disparities: int
+) -> tuple[int, int] | None:
+    """A second SGBM (minDisparity, numDisparities) for the sparse points (px) nearer than
+    ``first``'s near end, when over 1 % of them (and ≥ 5) are: it starts 16 px below that
+    end and spends up to ``max_disparities`` towards their 99th percentile × 1.15 + 2 px.
+    None when ``first`` holds them (a near surface seen past a far one fits one window)."""
+    d = np.asarray(disparities, dtype=np.float64)
+    top = first[0] + first[1]
+    nearer = d[d >= top]
+    if len(nearer) < max(5, 0.01 * len(d)):
+        return None
+    start = max(0, top - 16)
+    _, near = _window_ends(float(np.min(nearer)), float(np.percentile(nearer, 99)))
+    return start, max(16, min(max_disparities, _ceil16(near - start)))
+
+
 def far_disparity_window(focal_baseline: float, min_depth_m: float, num: int) -> tuple[int, int]:
     """SGBM (minDisparity, numDisparities) of a far-range pair: ``num`` disparities below
     that of ``min_depth_m`` (``focal_baseline`` / ``min_depth_m``, px), down to 0 (infinity)
@@ -466,27 +483,31 @@ def _rectify(ref: DenseView, src: DenseView) -> _Rectification:
     return _Rectification(r1, r2, p1, p2, bool(vertical), bool(tx > 0), f, abs(float(tx)) / f)
 
 
-def _sgbm_window(
+def _sgbm_windows(
     ref: DenseView,
     rect: _Rectification,
     points_env: FloatArray,
     options: ReconstructOptions,
     far_range: bool,
-) -> tuple[int, int] | None:
-    """SGBM (minDisparity, numDisparities) of the pair from its (N, 3) shared sparse points
-    (:func:`disparity_window`, :func:`far_disparity_window` with ``far_range``); None when
+) -> list[tuple[int, int]]:
+    """SGBM (minDisparity, numDisparities) windows of the pair from its (N, 3) shared sparse
+    points: :func:`disparity_window` and, where it leaves near points out,
+    :func:`nearer_window`; :func:`far_disparity_window` alone with ``far_range``. Empty when
     fewer than 5 of them lie in front of the rectified ref camera."""
     p_cam = points_env @ ref.cam_from_env[:3, :3].T + ref.cam_from_env[:3, 3]
     z_rect = (p_cam @ rect.r_ref.T)[:, 2]
     z_rect = z_rect[z_rect > 1e-6]
     if len(z_rect) < 5:
-        return None
+        return []
     f, baseline = rect.f_px, rect.baseline_m
     if far_range:
-        return far_disparity_window(
-            f * baseline, options.far_min_depth_m, options.far_max_disparities
-        )
-    return disparity_window(f * baseline / z_rect, options.max_disparities)
+        return [
+            far_disparity_window(f * baseline, options.far_min_depth_m, options.far_max_disparities)
+        ]
+    disparities = f * baseline / z_rect
+    first = disparity_window(disparities, options.max_disparities)
+    second = nearer_window(disparities, first, options.max_disparities)
+    return [first] if second is None else [first, second]
 
 
 @dataclass(frozen=True)
@@ -536,12 +557,13 @@ def _sgbm_disparity(
     right: _RectifiedView,
     window: tuple[int, int],
     rows_used: slice,
-    far_range: bool,
+    near_end_outside: bool,
     options: ReconstructOptions,
-) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """(left, right) canonical disparity maps in px (NaN = unknown) of one SGBM run over
-    ``rows_used``: matches at either end of the window, outside the images or in textureless
-    windows are dropped; the right map is the left one warped (:func:`_right_disparity`)."""
+) -> NDArray[np.float32]:
+    """The left canonical disparity map in px (NaN = unknown) of one SGBM run over
+    ``rows_used``: matches at the window's far end (and its near end with
+    ``near_end_outside``: surfaces nearer than it exist), outside the images or in
+    textureless windows are dropped."""
     min_disp, num = window
     bs = options.sgbm_block_size
     sgbm = cv2.StereoSGBM.create(
@@ -568,12 +590,55 @@ def _sgbm_disparity(
     disp /= 16.0
     # matches at either end of the window are surfaces outside it; a match left of the
     # right image's first block is one into the padding
-    at_ends = (disp <= max(min_disp, 0) + 0.5) | (far_range & (disp >= min_disp + num - 1.5))
+    at_ends = (disp <= max(min_disp, 0) + 0.5) | (near_end_outside & (disp >= min_disp + num - 1.5))
     outside = np.arange(left.gray.shape[1], dtype=np.float32)[None, :] - disp < bs
     disp[at_ends | outside | ~left.valid | _textureless(left.gray, bs)] = np.nan
-    disp_src = _right_disparity(disp)
-    disp_src[~right.valid | _textureless(right.gray, bs)] = np.nan
-    return disp, disp_src
+    return disp
+
+
+def _block_zncc(
+    left: NDArray[np.uint8], right: NDArray[np.uint8], disp: NDArray[np.float32], block: int
+) -> NDArray[np.float32]:
+    """Per left pixel, the zero-mean normalised cross-correlation (-1..1) of its ``block``²
+    window with the right image's at x - ``disp`` (px; NaN gives NaN): how well a disparity
+    explains the pair, comparable between two candidate maps."""
+    h, w = left.shape
+    xs = np.arange(w, dtype=np.float32)[None, :] - np.nan_to_num(disp, nan=-1e4)
+    ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
+    warped = cv2.remap(right.astype(np.float32), xs, np.ascontiguousarray(ys), cv2.INTER_LINEAR)
+    a, b = left.astype(np.float32), np.asarray(warped, np.float32)
+
+    def mean(x: NDArray[np.float32]) -> NDArray[np.float32]:
+        return np.asarray(cv2.boxFilter(x, -1, (block, block)), np.float32)
+
+    ma, mb = mean(a), mean(b)
+    cov = mean(a * b) - ma * mb
+    var = (mean(a * a) - ma * ma) * (mean(b * b) - mb * mb)
+    out = np.asarray(cov / np.sqrt(np.maximum(var, 1e-6)), np.float32)
+    out[~np.isfinite(disp)] = np.nan
+    return out
+
+
+def _merge_windows(
+    left: NDArray[np.uint8],
+    right: NDArray[np.uint8],
+    far: NDArray[np.float32],
+    near: NDArray[np.float32],
+    block: int,
+) -> NDArray[np.float32]:
+    """One left disparity map (px, NaN = unknown) from two windows' runs on the canonical
+    ``left``/``right`` grey images: a pixel matched in one takes that match; matched in both,
+    the mean where they agree within 1 px (the windows overlap by 16 px), else the match
+    whose ``block``² window correlates better (:func:`_block_zncc`; the other is false)."""
+    both = np.isfinite(far) & np.isfinite(near)
+    out = np.where(np.isfinite(far), far, near)
+    agree = both & (np.abs(far - near) <= 1.0)
+    out[agree] = 0.5 * (far[agree] + near[agree])
+    conflict = both & ~agree
+    if conflict.any():
+        nearer_wins = _block_zncc(left, right, near, block) > _block_zncc(left, right, far, block)
+        out[conflict] = np.where(nearer_wins[conflict], near[conflict], far[conflict])
+    return out.astype(np.float32)
 
 
 def _rows_to_match(left: _RectifiedView, right: _RectifiedView) -> slice | None:
@@ -597,7 +662,8 @@ def pair_depths(
     near_depths: tuple[NDArray[np.float32], NDArray[np.float32]] | None = None,
 ) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
     """Depth maps (H, W) float32 in metres (0 = unknown) of ``ref`` and of ``src`` from one
-    SGBM run on the rectified pair; ``src``'s map is the ref disparity warped to it.
+    SGBM run on the rectified pair (two where one window cannot hold the near sparse points:
+    :func:`nearer_window`); ``src``'s map is the ref disparity warped to it.
     ``points_env`` (N, 3) sparse points seen by both give the disparity range; with
     ``far_range`` the window only covers depths beyond ``far_min_depth_m``
     (:func:`far_disparity_window`). ``near_depths`` (the two views' depth maps from their
@@ -611,17 +677,23 @@ def pair_depths(
         raise ShapeError("stereo pairs must share an image size at MVS scale")
     rect = _rectify(ref, src)
     empty = np.zeros((h, w), np.float32)
-    window = _sgbm_window(ref, rect, points_env, options, far_range)
-    if window is None:
+    windows = _sgbm_windows(ref, rect, points_env, options, far_range)
+    if not windows:
         return empty, empty.copy()
     near_ref, near_src = (None, None) if near_depths is None else near_depths
     left = _rectified_view(ref, rect.r_ref, rect.p_ref, rect, near_ref, options)
     right = _rectified_view(src, rect.r_src, rect.p_src, rect, near_src, options)
     rows_used = _rows_to_match(left, right)
-    window = fit_window(window, left.gray.shape[1], options.sgbm_block_size)
-    if rows_used is None or window is None:
+    fitted = [fit_window(win, left.gray.shape[1], options.sgbm_block_size) for win in windows]
+    if rows_used is None or fitted[0] is None:
         return empty, empty.copy()
-    disp, disp_src = _sgbm_disparity(left, right, window, rows_used, far_range, options)
+    nearer = fitted[1] if len(fitted) > 1 else None
+    disp = _sgbm_disparity(left, right, fitted[0], rows_used, far_range or bool(nearer), options)
+    if nearer is not None:
+        disp_near = _sgbm_disparity(left, right, nearer, rows_used, True, options)
+        disp = _merge_windows(left.gray, right.gray, disp, disp_near, options.sgbm_block_size)
+    disp_src = _right_disparity(disp)
+    disp_src[~right.valid | _textureless(right.gray, options.sgbm_block_size)] = np.nan
     return (
         _depth_from_disparity(
             rect.uncanon(disp), ref.k_matrix, rect.r_ref, rect.p_ref, rect.baseline_m

@@ -596,27 +596,43 @@ def _sgbm_disparity(
     return disp
 
 
-def _block_zncc(
-    left: NDArray[np.uint8], right: NDArray[np.uint8], disp: NDArray[np.float32], block: int
-) -> NDArray[np.float32]:
-    """Per left pixel, the zero-mean normalised cross-correlation (-1..1) of its ``block``²
-    window with the right image's at x - ``disp`` (px; NaN gives NaN): how well a disparity
-    explains the pair, comparable between two candidate maps."""
-    h, w = left.shape
+def box_mean(img: NDArray[np.float32], win: int) -> NDArray[np.float32]:
+    """The mean of each ``win``² window of an (h, w) float32 image (edges reflected)."""
+    return np.asarray(cv2.boxFilter(img, -1, (win, win), borderType=cv2.BORDER_REFLECT), np.float32)
+
+
+@dataclass(frozen=True)
+class WindowStats:
+    """A grey image (h, w) float32 and its ZNCC windows' mean and variance."""
+
+    gray: NDArray[np.float32]
+    mean: NDArray[np.float32]
+    var: NDArray[np.float32]
+
+    @classmethod
+    def of(cls, gray: NDArray[np.float32], win: int) -> WindowStats:
+        """The stats of ``gray``'s ``win``² windows."""
+        mean = box_mean(gray, win)
+        return cls(gray, mean, box_mean(gray * gray, win) - mean * mean)
+
+
+def zncc(ref: WindowStats, warped: NDArray[np.float32], win: int) -> NDArray[np.float32]:
+    """(h, w) ZNCC (-1..1; about 0 where either side is flat) of ``win``² windows of the
+    reference and a warped (h, w) grey image."""
+    mean_w = box_mean(warped, win)
+    var_w = box_mean(warped * warped, win) - mean_w * mean_w
+    cov = box_mean(ref.gray * warped, win) - ref.mean * mean_w
+    return np.asarray(cov / np.sqrt(np.maximum(ref.var * var_w, 1e-6)), np.float32)
+
+
+def _shifted_right(right: NDArray[np.uint8], disp: NDArray[np.float32]) -> NDArray[np.float32]:
+    """The right grey image sampled at each left pixel's match, x - ``disp`` (px), as float32
+    (a NaN disparity samples the border: 0)."""
+    h, w = right.shape
     xs = np.arange(w, dtype=np.float32)[None, :] - np.nan_to_num(disp, nan=-1e4)
     ys = np.broadcast_to(np.arange(h, dtype=np.float32)[:, None], (h, w))
-    warped = cv2.remap(right.astype(np.float32), xs, np.ascontiguousarray(ys), cv2.INTER_LINEAR)
-    a, b = left.astype(np.float32), np.asarray(warped, np.float32)
-
-    def mean(x: NDArray[np.float32]) -> NDArray[np.float32]:
-        return np.asarray(cv2.boxFilter(x, -1, (block, block)), np.float32)
-
-    ma, mb = mean(a), mean(b)
-    cov = mean(a * b) - ma * mb
-    var = (mean(a * a) - ma * ma) * (mean(b * b) - mb * mb)
-    out = np.asarray(cov / np.sqrt(np.maximum(var, 1e-6)), np.float32)
-    out[~np.isfinite(disp)] = np.nan
-    return out
+    sampled = cv2.remap(right.astype(np.float32), xs, np.ascontiguousarray(ys), cv2.INTER_LINEAR)
+    return np.asarray(sampled, np.float32)
 
 
 def _merge_windows(
@@ -629,14 +645,17 @@ def _merge_windows(
     """One left disparity map (px, NaN = unknown) from two windows' runs on the canonical
     ``left``/``right`` grey images: a pixel matched in one takes that match; matched in both,
     the mean where they agree within 1 px (the windows overlap by 16 px), else the match
-    whose ``block``² window correlates better (:func:`_block_zncc`; the other is false)."""
+    whose ``block``² window correlates better (:func:`zncc`; the other is false)."""
     both = np.isfinite(far) & np.isfinite(near)
     out = np.where(np.isfinite(far), far, near)
     agree = both & (np.abs(far - near) <= 1.0)
     out[agree] = 0.5 * (far[agree] + near[agree])
     conflict = both & ~agree
     if conflict.any():
-        nearer_wins = _block_zncc(left, right, near, block) > _block_zncc(left, right, far, block)
+        ref = WindowStats.of(left.astype(np.float32), block)
+        nearer_wins = zncc(ref, _shifted_right(right, near), block) > zncc(
+            ref, _shifted_right(right, far), block
+        )
         out[conflict] = np.where(nearer_wins[conflict], near[conflict], far[conflict])
     return out.astype(np.float32)
 

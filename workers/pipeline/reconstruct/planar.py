@@ -39,7 +39,7 @@ from workers.pipeline.errors import ShapeError
 from workers.pipeline.geometry import as_points
 from workers.pipeline.reconstruct.common import Progress, no_progress
 from workers.pipeline.reconstruct.fusion import voxel_average
-from workers.pipeline.reconstruct.mvs import DenseView, VerifiedDepths
+from workers.pipeline.reconstruct.mvs import DenseView, VerifiedDepths, WindowStats, zncc
 from workers.pipeline.reconstruct.options import ReconstructOptions
 
 FloatArray = NDArray[np.float64]
@@ -514,10 +514,6 @@ def _label_depths(view: DenseView, planes: list[Plane], label: NDArray[np.int16]
     return depth
 
 
-def _box(img: F32, win: int) -> F32:
-    return np.asarray(cv2.boxFilter(img, -1, (win, win), borderType=cv2.BORDER_REFLECT), np.float32)
-
-
 def _gray(view: DenseView, scale: float) -> F32:
     g = cv2.cvtColor(view.image, cv2.COLOR_BGR2GRAY).astype(np.float32)
     if scale != 1.0:
@@ -850,15 +846,6 @@ def _fill_view(
     return _lay_in(views[i], depth, planes, label_acc, tuple(checked_by), options)
 
 
-@dataclass(frozen=True)
-class _WindowStats:
-    """A grey image (h, w) float32 and its ZNCC-window mean and variance."""
-
-    gray: F32
-    mean: F32
-    var: F32
-
-
 def _accepted(
     cands: _Candidates,
     views: list[DenseView],
@@ -875,10 +862,8 @@ def _accepted(
     nearer = (own_s > 0) & (own_s < options.far_min_depth_m) & (own_s < 0.95 * plane_s)
     nearer = cv2.dilate(nearer.astype(np.uint8), np.ones((win, win), np.uint8)) > 0
     g_ref = scaled.grays[cands.index]
-    mean_r = _box(g_ref, win)
-    var_r = _box(g_ref * g_ref, win) - mean_r * mean_r
-    ref = _WindowStats(g_ref, mean_r, var_r)
-    textured = var_r >= 1.0
+    ref = WindowStats.of(g_ref, win)
+    textured = ref.var >= 1.0
     hs, ws = g_ref.shape
     rays = _rays_cam(scaled.k_matrices[cands.index], ws, hs)
     scores = np.zeros((3, hs, ws), np.float32)
@@ -914,7 +899,7 @@ def _pair_scores(
     cands: _Candidates,
     views: list[DenseView],
     j: int,
-    ref: _WindowStats,
+    ref: WindowStats,
     rays: NDArray[np.float32],
     scaled: _ScaledViews,
     options: ReconstructOptions,
@@ -951,16 +936,8 @@ def _pair_scores(
         warped = np.asarray(
             cv2.remap(scaled.grays[j], mx, my, cv2.INTER_LINEAR, borderValue=0.0), np.float32
         )
-        ncc_all[k] = np.where(valid_j, _zncc(ref, warped, win), 0.0).astype(np.float32)
+        ncc_all[k] = np.where(valid_j, zncc(ref, warped, win), 0.0).astype(np.float32)
     return _PairScores(ncc_all, valid_j)
-
-
-def _zncc(ref: _WindowStats, warped: F32, win: int) -> F32:
-    """(h, w) ZNCC of ``win``² windows of the reference and a warped (h, w) grey image."""
-    mean_w = _box(warped, win)
-    var_w = _box(warped * warped, win) - mean_w * mean_w
-    cov = _box(ref.gray * warped, win) - ref.mean * mean_w
-    return np.asarray(cov / np.sqrt(np.maximum(ref.var * var_w, 1e-6)))
 
 
 def _lay_in(

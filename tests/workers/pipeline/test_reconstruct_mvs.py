@@ -44,8 +44,8 @@ def _views(n: int = 8) -> list[DenseView]:
     ]
 
 
-def _true_depth(view: DenseView) -> np.ndarray:
-    """Exact depth of the textured floor (z = 0, |x|, |y| < 0.45 m) per pixel, else 0."""
+def _true_depth(view: DenseView, half_m: float = 0.45) -> np.ndarray:
+    """Exact depth of the textured floor (z = 0, |x|, |y| < ``half_m``) per pixel, else 0."""
     h, w = view.image.shape[:2]
     u, v = np.meshgrid(np.arange(w), np.arange(h))
     k = view.k_matrix
@@ -55,7 +55,7 @@ def _true_depth(view: DenseView) -> np.ndarray:
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = -c[2] / dz
         xy = c[:2] + depth[..., None] * (rays @ rot[:2].T)
-    on_texture = (depth > 0) & (np.abs(xy) < 0.45).all(axis=-1)
+    on_texture = (depth > 0) & (np.abs(xy) < half_m).all(axis=-1)
     return np.where(on_texture, depth, 0.0).astype(np.float32)
 
 
@@ -243,19 +243,8 @@ def _board_scene() -> tuple[list[DenseView], np.ndarray, list[np.ndarray]]:
         lowered = pose.copy()
         lowered[2, 3] -= board_z  # the plane z = board_z seen as z = 0
         on_floor = _true_depth(DenseView("f", blank, k_matrix(), pose))
-        at_board = _true_depth(DenseView("b", blank, k_matrix(), lowered))
-        h, w = at_board.shape
-        u, v = np.meshgrid(np.arange(w), np.arange(h))
-        rays = np.stack(
-            [
-                (u - k_matrix()[0, 2]) / k_matrix()[0, 0],
-                (v - k_matrix()[1, 2]) / k_matrix()[1, 1],
-                np.ones_like(u, float),
-            ],
-            -1,
-        )
-        xy = transform_points(lowered, (rays * at_board[..., None]).reshape(-1, 3))[:, :2]
-        board = (at_board > 0) & (np.abs(xy) < half).all(axis=1).reshape(h, w)
+        at_board = _true_depth(DenseView("b", blank, k_matrix(), lowered), half_m=half)
+        board = at_board > 0
         image = np.where(board[..., None], render(board_tex, lowered), render(floor_tex, pose))
         views.append(DenseView(f"v{i}", image, k_matrix(), pose))
         depths.append(np.where(board, at_board, on_floor))

@@ -707,7 +707,8 @@ def pair_depths(
     if rows_used is None or fitted[0] is None:
         return empty, empty.copy()
     nearer = fitted[1] if len(fitted) > 1 else None
-    disp = _sgbm_disparity(left, right, fitted[0], rows_used, far_range or bool(nearer), options)
+    near_end_outside = far_range or nearer is not None
+    disp = _sgbm_disparity(left, right, fitted[0], rows_used, near_end_outside, options)
     if nearer is not None:
         disp_near = _sgbm_disparity(left, right, nearer, rows_used, True, options)
         disp = _merge_windows(left.gray, right.gray, disp, disp_near, options.sgbm_block_size)

@@ -29,7 +29,6 @@ from workers.pipeline.compare.visibility import (
     project_points,
 )
 from workers.pipeline.geometry import Mat4, Points
-from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
 from workers.pipeline.pose.top_view import least_turn_and_shift, turned_in_plane
 
 #: Canny's hysteresis thresholds on the 8-bit grey photo blurred over 3×3 pixels
@@ -44,16 +43,6 @@ OCCLUDER_GAP_M = 0.01
 MIN_RIM_PX = 40
 #: turns about the support's normal each fit starts from, degrees
 START_TURNS_DEG = (0.0, -3.0, 3.0)
-#: turns of the given pose the fit also starts from, degrees: the scan can hold a
-#: near-symmetric object's turn wrong by a quarter or a half turn (a box, a padlock), and
-#: the least cost decides
-WHOLE_TURNS_DEG = (0.0, 90.0, 180.0, 270.0)
-#: a turn that the model's symmetry brings within this of a start already taken is not
-#: tried again (a bowl a little off upright), degrees: the start's own fit reaches it
-ALIKE_TURN_DEG = 10.0
-#: Powell's first steps along the turn (radians) and the shifts (metres): each start is
-#: refined where it lies
-POWELL_STEPS = (float(np.radians(1.0)), 0.002, 0.002)
 #: the fit is repeated around its result (the silhouette chosen again) this many times
 PASSES = 2
 
@@ -61,7 +50,7 @@ PASSES = 2
 class EdgeModel(Protocol):
     """What the fit needs of a model (a :class:`~workers.pipeline.model.PreparedModel` is
     one): (N, 3) surface samples, their (N, 3) unit outward normals and (3,) centre, object
-    frame, metres, and its symmetry."""
+    frame, metres."""
 
     @property
     def points(self) -> Points: ...
@@ -71,9 +60,6 @@ class EdgeModel(Protocol):
 
     @property
     def centre_object(self) -> NDArray[np.float64]: ...
-
-    @property
-    def symmetry(self) -> SymmetrySpec: ...
 
 
 @dataclass
@@ -224,17 +210,17 @@ def _fit_pass(
     centre_object: NDArray[np.float64],
     normal_env: NDArray[np.float64],
     cap_px: float,
-    turns_deg: Sequence[float],
+    first: bool,
 ) -> Mat4:
     """One pass of :func:`fit_photo_edges` on chosen silhouettes: the least-cost pose from
-    ``pose`` turned by each of ``turns_deg``."""
+    ``pose`` turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
     centre = pose[:3, :3] @ centre_object + pose[:3, 3]
     stack = _stack(rims)
 
     def cost(x: NDArray[np.float64]) -> float:
         return _cost(stack, turned_in_plane(pose, normal_env, centre, x), cap_px)
 
-    best_x = least_turn_and_shift(cost, turns_deg, ftol=1e-5, steps=POWELL_STEPS)
+    best_x = least_turn_and_shift(cost, START_TURNS_DEG if first else (0.0,), ftol=1e-5)
     return turned_in_plane(pose, normal_env, centre, best_x)
 
 
@@ -250,49 +236,6 @@ class EdgeFit:
     views: int
 
 
-def _whole_starts(
-    model: EdgeModel, start: Mat4, normal_env: NDArray[np.float64], turns_deg: Sequence[float]
-) -> list[Mat4]:
-    """``start`` turned by each of ``turns_deg`` (the first 0) about the unit ``normal_env``
-    through the object's centre, less those the model's symmetry makes alike
-    (:data:`ALIKE_TURN_DEG`)."""
-    centre = start[:3, :3] @ model.centre_object + start[:3, 3]
-    out: list[Mat4] = []
-    for deg in turns_deg:
-        pose = turned_in_plane(start, normal_env, centre, np.array([np.radians(deg), 0.0, 0.0]))
-        if all(
-            symmetric_pose_error(pose, kept, model.symmetry, model.centre_object)[1]
-            > ALIKE_TURN_DEG
-            for kept in out
-        ):
-            out.append(pose)
-    return out
-
-
-def _fit_from(
-    model: EdgeModel,
-    start: Mat4,
-    normal_env: NDArray[np.float64],
-    sight: CaptureSight,
-    cap_px: float,
-    max_views: int,
-    passes: int = PASSES,
-    first_turns_deg: Sequence[float] = START_TURNS_DEG,
-) -> tuple[Mat4, _RimStack] | None:
-    """The fit from one start: ``passes`` of :func:`_fit_pass`, the first from its turns
-    ``first_turns_deg``; its pose and the silhouettes chosen around it (None: no photo
-    shows all of the start)."""
-    pose = start
-    rims = _rims(model, pose, sight, max_views)
-    if not rims:
-        return None
-    for i in range(passes):
-        turns = first_turns_deg if i == 0 else (0.0,)
-        pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, turns)
-        rims = _rims(model, pose, sight, max_views) or rims
-    return pose, _stack(rims)
-
-
 def fit_photo_edges(
     model: EdgeModel,
     start: Mat4,
@@ -300,31 +243,19 @@ def fit_photo_edges(
     sight: CaptureSight,
     cap_px: float,
     max_views: int,
-    turns_deg: Sequence[float] = WHOLE_TURNS_DEG,
 ) -> EdgeFit:
     """``start`` turned about the unit ``normal_env`` (the support's) through the object's
     centre and shifted across the plane so that the model's silhouette lies on the edges
-    of the photos that show all of it (``sight``): mean distances capped at ``cap_px``
-    over at most ``max_views`` photos, minimised (Powell, local steps) from ``start``
-    turned by :data:`START_TURNS_DEG`, the silhouettes chosen again around the result
-    (:data:`PASSES`), and from ``start`` turned by each other of ``turns_deg`` (one pass;
-    the best of those is fitted in full when it costs less): the fit of least cost on its
-    own silhouettes wins, and ``start_cost`` is the start's on them. No photo shows all of
-    ``start``: ``start``, ``views`` 0."""
-    first, *others = _whole_starts(model, start, normal_env, turns_deg)
-    found = _fit_from(model, first, normal_env, sight, cap_px, max_views)
-    if found is None:
+    of the photos of ``sight`` that show all of it: mean distances capped at ``cap_px``
+    over at most ``max_views`` photos, minimised (Powell) from :data:`START_TURNS_DEG`, the
+    silhouettes chosen again around the result (:data:`PASSES`). No photo shows it:
+    ``start``, ``views`` 0."""
+    pose = start
+    rims = _rims(model, pose, sight, max_views)
+    if not rims:
         return EdgeFit(start, float("inf"), float("inf"), 0)
-    fits = [found]
-    for s in others:  # one pass each; the best of them, if it wins, is fitted in full
-        fit = _fit_from(model, s, normal_env, sight, cap_px, max_views, 1, (0.0,))
-        if fit is not None:
-            fits.append(fit)
-    costs = [_cost(stack, pose, cap_px) for pose, stack in fits]
-    best = int(np.argmin(costs))
-    if best > 0 and (full := _fit_from(model, fits[best][0], normal_env, sight, cap_px, max_views)):
-        fits.append(full)
-        costs.append(_cost(full[1], full[0], cap_px))
-        best = int(np.argmin(costs))
-    pose, stack = fits[best]
-    return EdgeFit(pose, costs[best], _cost(stack, start, cap_px), stack.views)
+    for i in range(PASSES):
+        pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, i == 0)
+        rims = _rims(model, pose, sight, max_views) or rims
+    stack = _stack(rims)
+    return EdgeFit(pose, _cost(stack, pose, cap_px), _cost(stack, start, cap_px), len(rims))

@@ -28,7 +28,7 @@ from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.estimate import estimate_pose
 from workers.pipeline.pose.fit import inlier_figures
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
-from workers.pipeline.pose.photo_edges import WHOLE_TURNS_DEG, CaptureSight, fit_photo_edges
+from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
 from workers.pipeline.pose.verify import (
     FINAL_TURN_REASON,
@@ -172,11 +172,7 @@ def pose_change(
 
 
 def _on_photo_edges(
-    model: PreparedModel,
-    env_from_object: Mat4,
-    sight: CaptureSight,
-    options: PoseOptions,
-    whole: bool = True,
+    model: PreparedModel, env_from_object: Mat4, sight: CaptureSight, options: PoseOptions
 ) -> tuple[Mat4, dict[str, Any], tuple[str, ...], list[str]] | None:
     """The pose turned about the environment's up through the object's centre and shifted
     across the support onto the photos' edges
@@ -186,10 +182,8 @@ def _on_photo_edges(
     last fits' disagreement on the turn when the photos turned the pose by at most
     ``photo_edges_confirm_deg``: they confirm the last fit); and the reason it is not
     verified when that turn exceeds ``max_final_turn_deg`` (the scan and the photos
-    disagree). The fit also starts from the pose turned all round (``whole``; a near-tie
-    starts from its own turn only: the near-ties are the turns in question). A fit that
-    lowers no cost keeps ``env_from_object``. None: no photo shows all of it
-    (``photo_edges_max_views`` 0: never)."""
+    disagree). A fit that lowers no cost keeps ``env_from_object``. None: no photo shows
+    all of it (``photo_edges_max_views`` 0: never)."""
     fit = fit_photo_edges(
         model,
         env_from_object,
@@ -197,7 +191,6 @@ def _on_photo_edges(
         sight,
         options.photo_edges_cap_px,
         options.photo_edges_max_views,
-        WHOLE_TURNS_DEG if whole else (0.0,),
     )
     if fit.views == 0:
         return None
@@ -279,14 +272,12 @@ def _photo_tiebreak(
     sight: CaptureSight,
     options: PoseOptions,
 ) -> _PhotoTie | None:
-    """Each distinct near-tie fitted to the photos' edges from its own turn (the chosen
-    pose's fit is ``moved``; the near-ties on ``options.threads`` threads): the one whose
-    cost every other's exceeds :data:`RIVAL_PHOTO_RATIO` times. None when none does, or
-    when a near-tie has no photo that shows all of it."""
+    """Each distinct near-tie fitted to the photos' edges as the chosen pose was
+    (``moved``; the near-ties on ``options.threads`` threads): the one whose cost every
+    other's exceeds :data:`RIVAL_PHOTO_RATIO` times. None when none does, or when a
+    near-tie has no photo that shows all of it."""
     others = ordered_map(
-        lambda alt: _on_photo_edges(model, alt, sight, options, whole=False),
-        near_ties,
-        options.threads,
+        lambda alt: _on_photo_edges(model, alt, sight, options), near_ties, options.threads
     )
     fits = [moved, *(f for f in others if f is not None)]
     if len(fits) < 1 + len(near_ties):  # a near-tie no photo shows all of

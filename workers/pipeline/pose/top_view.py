@@ -173,28 +173,18 @@ def turned_in_plane(
 
 
 def least_turn_and_shift(
-    cost: Callable[[NDArray[np.float64]], float],
-    starts_deg: Sequence[float],
-    ftol: float,
-    steps: tuple[float, float, float] | None = None,
+    cost: Callable[[NDArray[np.float64]], float], starts_deg: Sequence[float], ftol: float
 ) -> NDArray[np.float64]:
     """The (3,) turn (radians) and shift (metres) of :func:`turned_in_plane` of least
     ``cost``: zero, or Powell's minimum from each turn of ``starts_deg`` (degrees) when it
-    costs less (``ftol``: Powell's relative tolerance on the cost; ``steps``: its first
-    step along the turn and the two shifts, radians and metres, None: one unit each, which
-    lets its line searches leap to another basin of the cost)."""
+    costs less (``ftol``: Powell's relative tolerance on the cost)."""
     best_x, best = np.zeros(3), cost(np.zeros(3))
     for turn_deg in starts_deg:
         r = minimize(
             cost,
             np.array([np.radians(turn_deg), 0.0, 0.0]),
             method="Powell",
-            # a new array each time: Powell turns its directions in place
-            options={
-                "xtol": 1e-5,
-                "ftol": ftol,
-                "direc": None if steps is None else np.diag(steps),
-            },
+            options={"xtol": 1e-5, "ftol": ftol},
         )
         if r.fun < best:
             best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)

@@ -808,10 +808,10 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002)
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
-    seen = refiner._in_view(points, np.eye(3))
+    seen = points[refiner._in_view(points, np.eye(3))]
     assert len(seen) == 100 and seen[:, 2].min() >= 0.02
     region.support = None
-    assert len(refiner._in_view(points, np.eye(3))) == 150
+    assert np.count_nonzero(refiner._in_view(points, np.eye(3))) == 150
 
 
 def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
@@ -830,7 +830,7 @@ def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     points, normals = np.repeat(points, 5, axis=0), np.repeat(normals, 5, axis=0)
     refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
-    seen = refiner._in_view(points, np.eye(3))
+    seen = points[refiner._in_view(points, np.eye(3))]
     assert sorted(set(np.round(seen[:, 2], 4))) == [-0.004, -0.0025]
 
 

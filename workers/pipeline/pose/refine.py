@@ -143,13 +143,22 @@ class Refiner:
         )
 
     def _refine(self, trial: Trial) -> Refined:
-        """Multi-scale ICP of one trial on the mid subsample, scored at the fine scale."""
+        """Multi-scale ICP of one trial on the mid-subsample points a camera could see from
+        the pose each scale starts at (:meth:`_in_view`, the points the score counts: the
+        hidden underside, with no scan to pair with, would pull the fit), scored at the
+        fine scale."""
         o, v = self.ctx.options, self.ctx.model.voxel_m
         target = self.ctx.region.target_fine
         pose = trial.env_from_object
         for scale in o.icp_scales_voxels:
+            seen = self._in_view(transform_points(pose, self.mid_points), pose[:3, :3])
             pose = icp_point_to_plane(
-                self.mid_points, self.mid_normals, target, pose, scale * v, o.icp_max_iterations
+                self.mid_points[seen],
+                self.mid_normals[seen],
+                target,
+                pose,
+                scale * v,
+                o.icp_max_iterations,
             )
         return Refined(self.score(pose), pose, trial)
 
@@ -159,28 +168,29 @@ class Refiner:
         :meth:`FitContext.exclusion` of them all."""
         o, v = self.ctx.options, self.ctx.model.voxel_m
         posed_mid = transform_points(env_from_object, self.mid_points)
-        in_view = self._in_view(posed_mid, env_from_object[:3, :3])
+        in_view = posed_mid[self._in_view(posed_mid, env_from_object[:3, :3])]
         return truncated_score(
             self.ctx.region.target_fine.tree, in_view, o.fine_score_voxels * v
         ) * self.ctx.exclusion(posed_mid)
 
-    def _in_view(self, posed: Points, rotation: NDArray[np.float64]) -> Points:
-        """Of the (N, 3) mid-sample model points posed with (3, 3) ``rotation``, those a
-        camera could see: not on the support (within its band: the scene has no point
-        there) nor facing down at it within two voxels (under an object resting there no
-        camera looks: a mug upright hides its base, upside down only its rim). Points sunk
-        below the support's own points (half a band under the plane) stay: a pose does not
-        hide what it fails to explain in the floor."""
+    def _in_view(self, posed: Points, rotation: NDArray[np.float64]) -> NDArray[np.bool_]:
+        """(N,) mask of the (N, 3) mid-sample model points posed with (3, 3) ``rotation``
+        that a camera could see: not on the support (within its band: the scene has no
+        point there) nor facing down at it within two voxels (under an object resting there
+        no camera looks: a mug upright hides its base, upside down only its rim); all of
+        them when fewer than 10 are left. Points sunk below the support's own points (half
+        a band under the plane) stay: a pose does not hide what it fails to explain in the
+        floor."""
         region = self.ctx.region
         if region.support is None:
-            return posed
+            return np.ones(len(posed), dtype=bool)
         n = region.support[:3]
         height = posed @ n + region.support[3]
         facing = self.mid_normals @ rotation.T @ n
         hidden = (height >= -region.band_m / 2) & (
             (height <= region.band_m) | ((facing < -0.7) & (height < 2 * self.ctx.model.voxel_m))
         )
-        return posed[~hidden] if np.count_nonzero(~hidden) >= 10 else posed
+        return ~hidden if np.count_nonzero(~hidden) >= 10 else np.ones(len(posed), dtype=bool)
 
     def _turn_upright(self) -> None:
         """When the best refined pose is upside down, its turns (:func:`flips`) that stand

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import pytest
-from scipy.spatial import ConvexHull
+from scipy.spatial import ConvexHull, cKDTree
 
 from tests.workers.pipeline.compare_scene import look_at
 from workers.pipeline.__main__ import main as pipeline_main
@@ -812,6 +812,48 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     assert len(seen) == 100 and seen[:, 2].min() >= 0.02
     region.support = None
     assert np.count_nonzero(refiner._in_view(points, np.eye(3))) == 150
+
+
+def test_the_refining_icp_fits_only_what_the_score_counts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The cup's base, resting on the floor and facing it, has no scan to pair with: the
+    refining ICP leaves it out at every scale, as the score does (it pulled a table hammer
+    12° off its true pose)."""
+    from types import SimpleNamespace
+
+    from workers.pipeline.pose import refine
+    from workers.pipeline.pose.result import Trial
+
+    base = np.column_stack([np.zeros((50, 2)), np.full(50, 0.004)])  # 4 mm up, facing down
+    wall = np.column_stack([np.zeros((50, 2)), np.linspace(0.02, 0.1, 50)])  # facing out
+    points = np.vstack([base, wall])
+    normals = np.vstack([np.tile([0, 0, -1.0], (50, 1)), np.tile([1.0, 0, 0], (50, 1))])
+    region = SimpleNamespace(
+        support=np.array([0.0, 0.0, 1.0, 0.0]),
+        band_m=0.002,
+        target_fine=SimpleNamespace(tree=cKDTree(wall)),
+    )
+    options = SimpleNamespace(
+        icp_scales_voxels=(1.5, 0.6), icp_max_iterations=5, fine_score_voxels=1.0
+    )
+    ctx = SimpleNamespace(
+        region=region,
+        model=SimpleNamespace(voxel_m=0.005),
+        options=options,
+        exclusion=lambda posed: 1.0,
+    )
+    fitted: list[np.ndarray] = []
+
+    def icp(src, src_normals, target, init, dist, iters):  # type: ignore[no-untyped-def]
+        fitted.append(src)
+        return init
+
+    monkeypatch.setattr(refine, "icp_point_to_plane", icp)
+    refiner = refine.Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
+    refiner._refine(Trial("start", 0.0, 0.0, 0.0, 0.0, np.eye(4)))
+    assert len(fitted) == 2
+    assert all(len(src) == 50 and src[:, 2].min() >= 0.02 for src in fitted)
 
 
 def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:

@@ -818,8 +818,7 @@ def test_the_refining_icp_fits_only_what_the_score_counts(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     """The cup's base, resting on the floor and facing it, has no scan to pair with: the
-    refining ICP leaves it out at every scale, as the score does (it pulled a table hammer
-    12° off its true pose)."""
+    refining ICP leaves it out at every scale, as the score does."""
     from types import SimpleNamespace
 
     from workers.pipeline.pose import refine

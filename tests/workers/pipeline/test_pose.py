@@ -808,10 +808,10 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002)
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
-    seen = points[refiner._in_view(points, np.eye(3))]
+    seen = points[refiner._in_view(points, normals, np.eye(3))]
     assert len(seen) == 100 and seen[:, 2].min() >= 0.02
     region.support = None
-    assert np.count_nonzero(refiner._in_view(points, np.eye(3))) == 150
+    assert np.count_nonzero(refiner._in_view(points, normals, np.eye(3))) == 150
 
 
 def test_the_refining_icp_fits_only_what_the_score_counts(
@@ -855,6 +855,40 @@ def test_the_refining_icp_fits_only_what_the_score_counts(
     assert all(len(src) == 50 and src[:, 2].min() >= 0.02 for src in fitted)
 
 
+def test_the_finishing_icp_fits_only_what_a_camera_could_see(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The finishing ICP, on every model point, leaves out the cup's base resting on the
+    floor as the refining ICP does."""
+    from types import SimpleNamespace
+
+    from workers.pipeline.pose import refine
+    from workers.pipeline.pose.result import Trial
+
+    base = np.column_stack([np.zeros((50, 2)), np.full(50, 0.004)])  # 4 mm up, facing down
+    wall = np.column_stack([np.zeros((50, 2)), np.linspace(0.02, 0.1, 50)])  # facing out
+    points = np.vstack([base, wall])
+    normals = np.vstack([np.tile([0, 0, -1.0], (50, 1)), np.tile([1.0, 0, 0], (50, 1))])
+    region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002, target_fine=wall)
+    options = SimpleNamespace(icp_scales_voxels=(1.5, 0.6), icp_max_iterations=5)
+    model = SimpleNamespace(voxel_m=0.005, points=points, normals=normals)
+    ctx = SimpleNamespace(region=region, model=model, options=options)
+
+    class Fitted(Exception):
+        pass
+
+    def icp(src, src_normals, target, init, dist, iters):  # type: ignore[no-untyped-def]
+        raise Fitted(src)
+
+    monkeypatch.setattr(refine, "icp_point_to_plane", icp)
+    refiner = refine.Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
+    refined = refine.Refined(0.5, np.eye(4), Trial("start", 0.0, 0.0, 0.0, 0.0, np.eye(4)))
+    with pytest.raises(Fitted) as fitted:
+        refiner._finish(refined)
+    src = fitted.value.args[0]
+    assert len(src) == 50 and src[:, 2].min() >= 0.02
+
+
 def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
     """Model points half a band or more under the support plane are not hidden by it (the
     support's own points lie within half a band of it): a pose tilted into the floor
@@ -871,7 +905,7 @@ def test_the_score_counts_what_a_pose_sinks_below_the_support() -> None:
     ctx = SimpleNamespace(region=region, model=SimpleNamespace(voxel_m=0.005))
     points, normals = np.repeat(points, 5, axis=0), np.repeat(normals, 5, axis=0)
     refiner = Refiner(ctx, points, normals, None, np.zeros((0, 3)), np.zeros((0, 3)))
-    seen = points[refiner._in_view(points, np.eye(3))]
+    seen = points[refiner._in_view(points, normals, np.eye(3))]
     assert sorted(set(np.round(seen[:, 2], 4))) == [-0.004, -0.0025]
 
 

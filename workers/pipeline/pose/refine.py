@@ -151,7 +151,8 @@ class Refiner:
         target = self.ctx.region.target_fine
         pose = trial.env_from_object
         for scale in o.icp_scales_voxels:
-            seen = self._in_view(transform_points(pose, self.mid_points), pose[:3, :3])
+            posed = transform_points(pose, self.mid_points)
+            seen = self._in_view(posed, self.mid_normals, pose[:3, :3])
             pose = icp_point_to_plane(
                 self.mid_points[seen],
                 self.mid_normals[seen],
@@ -168,25 +169,27 @@ class Refiner:
         :meth:`FitContext.exclusion` of them all."""
         o, v = self.ctx.options, self.ctx.model.voxel_m
         posed_mid = transform_points(env_from_object, self.mid_points)
-        in_view = posed_mid[self._in_view(posed_mid, env_from_object[:3, :3])]
+        in_view = posed_mid[self._in_view(posed_mid, self.mid_normals, env_from_object[:3, :3])]
         return truncated_score(
             self.ctx.region.target_fine.tree, in_view, o.fine_score_voxels * v
         ) * self.ctx.exclusion(posed_mid)
 
-    def _in_view(self, posed: Points, rotation: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """(N,) mask of the (N, 3) mid-sample model points posed with (3, 3) ``rotation``
-        that a camera could see: not on the support (within its band: the scene has no
-        point there) nor facing down at it within two voxels (under an object resting there
-        no camera looks: a mug upright hides its base, upside down only its rim); all of
-        them when fewer than 10 are left. Points sunk below the support's own points (half
-        a band under the plane) stay: a pose does not hide what it fails to explain in the
-        floor."""
+    def _in_view(
+        self, posed: Points, normals_object: Points, rotation: NDArray[np.float64]
+    ) -> NDArray[np.bool_]:
+        """(N,) mask of the (N, 3) model points posed with (3, 3) ``rotation`` (their (N, 3)
+        ``normals_object``, object frame) that a camera could see: not on the support
+        (within its band: the scene has no point there) nor facing down at it within two
+        voxels (under an object resting there no camera looks: a mug upright hides its
+        base, upside down only its rim); all of them when fewer than 10 are left. Points
+        sunk below the support's own points (half a band under the plane) stay: a pose does
+        not hide what it fails to explain in the floor."""
         region = self.ctx.region
         if region.support is None:
             return np.ones(len(posed), dtype=bool)
         n = region.support[:3]
         height = posed @ n + region.support[3]
-        facing = self.mid_normals @ rotation.T @ n
+        facing = normals_object @ rotation.T @ n
         hidden = (height >= -region.band_m / 2) & (
             (height <= region.band_m) | ((facing < -0.7) & (height < 2 * self.ctx.model.voxel_m))
         )
@@ -353,20 +356,22 @@ class Refiner:
         return picks
 
     def _finish(self, refined: Refined) -> _Finished:
-        """The last steps of a refined pose (once per pose): ICP on every model point, the
-        scan-to-model fit (kept unless it turned the ICP's pose by more than
-        ``max_final_turn_deg``), lifted out of its support and set at rest on it
-        (:meth:`_at_rest`)."""
+        """The last steps of a refined pose (once per pose): ICP on every model point a camera
+        could see at it (:meth:`_in_view`), the scan-to-model fit (kept unless it turned the
+        ICP's pose by more than ``max_final_turn_deg``), lifted out of its support and set
+        at rest on it (:meth:`_at_rest`)."""
         if id(refined) in self.finished:
             return self.finished[id(refined)]
         m, o, region = self.ctx.model, self.ctx.options, self.ctx.region
         v = m.voxel_m
         slack = turn = 0.0
+        start = refined.env_from_object
+        seen = self._in_view(transform_points(start, m.points), m.normals, start[:3, :3])
         icp_pose = icp_point_to_plane(
-            m.points,
-            m.normals,
+            m.points[seen],
+            m.normals[seen],
             region.target_fine,
-            refined.env_from_object,
+            start,
             o.icp_scales_voxels[-1] * v,
             o.icp_max_iterations,
         )

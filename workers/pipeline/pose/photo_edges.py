@@ -247,10 +247,8 @@ def fit_photo_edges(
     """``start`` turned about the unit ``normal_env`` (the support's) through the object's
     centre and shifted across the plane so that the model's silhouette lies on the edges
     of the photos of ``sight`` that show all of it: mean distances capped at ``cap_px``
-    over at most ``max_views`` photos, minimised (Powell) from :data:`START_TURNS_DEG`, each
-    minimisation turning the pose by at most
-    :data:`~workers.pipeline.pose.top_view.MAX_TURN_DEG`, the silhouettes chosen again around
-    the result (:data:`PASSES`). No photo shows it:
+    over at most ``max_views`` photos, minimised (Powell) from :data:`START_TURNS_DEG`, the
+    silhouettes chosen again around the result (:data:`PASSES`). No photo shows it:
     ``start``, ``views`` 0."""
     pose = start
     rims = _rims(model, pose, sight, max_views)

@@ -35,10 +35,9 @@ from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_e
 START_TURNS_DEG = (0.0, -4.0, 4.0, -8.0, 8.0)
 #: the most times the points are chosen again around the fit
 MAX_PASSES = 3
-#: the most a fit may turn its start, degrees (each minimisation, also the photo-edge fit's;
-#: a whole top-view fit modulo the object's symmetry): half a quarter turn, beyond which a
-#: box-like outline is nearer its next pose than the one it refines; the candidates' scores
-#: choose among those, not the outline or the photos
+#: the most a fit may turn its start (modulo the object's symmetry), degrees: half a
+#: quarter turn, beyond which a box-like outline is nearer its next pose than the one it
+#: refines; the candidates' scores choose among those, not the outline
 MAX_TURN_DEG = 45.0
 #: the finest outline cell, metres, and the most cells along a side of the outline's grid
 MIN_CELL_M = 0.001
@@ -178,9 +177,7 @@ def least_turn_and_shift(
 ) -> NDArray[np.float64]:
     """The (3,) turn (radians) and shift (metres) of :func:`turned_in_plane` of least
     ``cost``: zero, or Powell's minimum from each turn of ``starts_deg`` (degrees) when it
-    costs less and turns by at most :data:`MAX_TURN_DEG` (Powell's first step is a whole
-    radian, which can leap to another basin); ``ftol``: Powell's relative tolerance on the
-    cost."""
+    costs less (``ftol``: Powell's relative tolerance on the cost)."""
     best_x, best = np.zeros(3), cost(np.zeros(3))
     for turn_deg in starts_deg:
         r = minimize(
@@ -189,7 +186,7 @@ def least_turn_and_shift(
             method="Powell",
             options={"xtol": 1e-5, "ftol": ftol},
         )
-        if r.fun < best and abs(np.degrees(r.x[0])) <= MAX_TURN_DEG:
+        if r.fun < best:
             best_x, best = np.asarray(r.x, dtype=np.float64), float(r.fun)
     return best_x
 

@@ -12,13 +12,7 @@ import numpy as np
 from tests.workers.pipeline.pose.test_final_fit import box_surface, errors, turn
 from workers.pipeline.geometry import transform_points
 from workers.pipeline.model.symmetry_group import NO_SYMMETRY
-from workers.pipeline.pose.top_view import (
-    MAX_TURN_DEG,
-    Outline,
-    fit_top_view,
-    least_turn_and_shift,
-    outline_costs,
-)
+from workers.pipeline.pose.top_view import Outline, fit_top_view, outline_costs
 
 FLOOR = np.array([0.0, 0.0, 1.0, 0.0])
 
@@ -126,21 +120,6 @@ def test_a_fit_that_would_turn_its_start_far_leaves_it_where_it_was() -> None:
     start = turn((0.0, 0.0, 45.0), (0.0, 0.0, 0.0)) @ true
     fitted = fit_top_view(model_of(pts), [start], FLOOR, scene, floor, 0.008, 0.1)
     assert np.array_equal(fitted, start)
-
-
-def test_a_minimisation_that_leaps_to_a_far_turn_is_not_taken() -> None:
-    # a narrow basin 1.7° from the start and a lower, wide one 149° away: from 0°, Powell's
-    # first step (a radian) lands in the wide one; from 2° it stays in the narrow one
-    def cost(x: np.ndarray) -> float:
-        near = 0.5 - 0.3 * np.exp(-(((x[0] - 0.03) / 0.02) ** 2))
-        far = 0.45 - 0.3 * np.exp(-(((x[0] - 2.6) / 1.5) ** 2))
-        return float(min(near, far) + x[1] ** 2 + x[2] ** 2)
-
-    leapt = least_turn_and_shift(cost, (0.0,), ftol=1e-5)
-    assert np.all(leapt == 0.0)  # the leap is not taken: zero stays
-    x = least_turn_and_shift(cost, (0.0, 2.0), ftol=1e-5)
-    assert abs(np.degrees(x[0]) - np.degrees(0.03)) < 0.01 < MAX_TURN_DEG
-    assert np.abs(x[1:]).max() < 1e-6
 
 
 def test_the_outline_tells_a_flat_object_from_its_mirror_image() -> None:

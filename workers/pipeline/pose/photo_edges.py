@@ -227,8 +227,8 @@ def _fit_pass(
 @dataclass(frozen=True)
 class EdgeFit:
     """The pose the photos' edges hold (``env_from_object``), its ``cost`` (mean pixels to
-    the nearest edge) and the start's, and ``views``, the photos that took part (0: no fit,
-    the start returned)."""
+    the nearest edge) and the start's, each on its own silhouettes, and ``views``, the
+    photos that took part (0: no fit, the start returned)."""
 
     env_from_object: Mat4
     cost: float
@@ -254,8 +254,8 @@ def fit_photo_edges(
     rims = _rims(model, pose, sight, max_views)
     if not rims:
         return EdgeFit(start, float("inf"), float("inf"), 0)
+    start_cost = _cost(_stack(rims), start, cap_px)
     for i in range(PASSES):
         pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, i == 0)
         rims = _rims(model, pose, sight, max_views) or rims
-    stack = _stack(rims)
-    return EdgeFit(pose, _cost(stack, pose, cap_px), _cost(stack, start, cap_px), len(rims))
+    return EdgeFit(pose, _cost(_stack(rims), pose, cap_px), start_cost, len(rims))

@@ -19,7 +19,7 @@ from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import make_rigid, rotation_about_unit_axis, transform_points
 from workers.pipeline.model.symmetry_group import SymmetrySpec, symmetric_pose_error
-from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, posing
+from workers.pipeline.pose import POSE_PRESETS, RUNNER_UP_REASON, photo_edges, posing
 from workers.pipeline.pose.crop import SceneCloud
 from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.verify import FINAL_TURN_REASON
@@ -156,6 +156,22 @@ def test_the_fit_turns_and_shifts_a_pose_onto_the_photos_edges(
     assert turn < 0.5 and shift < 0.001, (turn, shift)
     assert fit.cost < fit.start_cost
     assert fit.env_from_object[2, 3] == pytest.approx(true[2, 3])  # it stays on its support
+
+
+def test_the_start_is_costed_on_its_own_silhouettes(
+    setting: tuple[Plate, np.ndarray, CaptureData], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The start's cost, which the fit must beat, is what its own silhouettes cost, not
+    those chosen around the fit's result (which favour the result)."""
+    model, true, capture = setting
+    start = turned(true, 4.0, (0.003, -0.002))
+    sight = CaptureSight(capture, open_depth(capture))
+    monkeypatch.setattr(photo_edges, "PASSES", 0)
+    unfitted = fit_photo_edges(model, start, UP, sight, 4.0, 12)
+    assert unfitted.env_from_object is start and unfitted.cost == unfitted.start_cost
+    monkeypatch.undo()
+    fit = fit_photo_edges(model, start, UP, sight, 4.0, 12)
+    assert fit.start_cost == unfitted.start_cost and fit.cost < fit.start_cost
 
 
 def test_photos_that_do_not_show_all_of_it_take_no_part(

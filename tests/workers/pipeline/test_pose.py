@@ -814,6 +814,15 @@ def test_the_score_leaves_out_what_rests_on_the_support_and_faces_it() -> None:
     assert np.count_nonzero(refiner._in_view(points, normals, np.eye(3))) == 150
 
 
+def cup_base_and_wall() -> tuple[np.ndarray, np.ndarray]:
+    """(100, 3) points and outward normals of a cup resting on z = 0: its base 4 mm up
+    facing down (50 points, first), then its wall facing out, 2-10 cm up (50)."""
+    base = np.column_stack([np.zeros((50, 2)), np.full(50, 0.004)])
+    wall = np.column_stack([np.zeros((50, 2)), np.linspace(0.02, 0.1, 50)])
+    normals = np.vstack([np.tile([0, 0, -1.0], (50, 1)), np.tile([1.0, 0, 0], (50, 1))])
+    return np.vstack([base, wall]), normals
+
+
 def test_the_refining_icp_fits_only_what_the_score_counts(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -824,10 +833,8 @@ def test_the_refining_icp_fits_only_what_the_score_counts(
     from workers.pipeline.pose import refine
     from workers.pipeline.pose.result import Trial
 
-    base = np.column_stack([np.zeros((50, 2)), np.full(50, 0.004)])  # 4 mm up, facing down
-    wall = np.column_stack([np.zeros((50, 2)), np.linspace(0.02, 0.1, 50)])  # facing out
-    points = np.vstack([base, wall])
-    normals = np.vstack([np.tile([0, 0, -1.0], (50, 1)), np.tile([1.0, 0, 0], (50, 1))])
+    points, normals = cup_base_and_wall()
+    wall = points[50:]
     region = SimpleNamespace(
         support=np.array([0.0, 0.0, 1.0, 0.0]),
         band_m=0.002,
@@ -865,10 +872,8 @@ def test_the_finishing_icp_fits_only_what_a_camera_could_see(
     from workers.pipeline.pose import refine
     from workers.pipeline.pose.result import Trial
 
-    base = np.column_stack([np.zeros((50, 2)), np.full(50, 0.004)])  # 4 mm up, facing down
-    wall = np.column_stack([np.zeros((50, 2)), np.linspace(0.02, 0.1, 50)])  # facing out
-    points = np.vstack([base, wall])
-    normals = np.vstack([np.tile([0, 0, -1.0], (50, 1)), np.tile([1.0, 0, 0], (50, 1))])
+    points, normals = cup_base_and_wall()
+    wall = points[50:]
     region = SimpleNamespace(support=np.array([0.0, 0.0, 1.0, 0.0]), band_m=0.002, target_fine=wall)
     options = SimpleNamespace(icp_scales_voxels=(1.5, 0.6), icp_max_iterations=5)
     model = SimpleNamespace(voxel_m=0.005, points=points, normals=normals)

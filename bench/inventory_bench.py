@@ -63,7 +63,7 @@ from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.inventory import InventoryResult, inventory_options_from_json, take_inventory
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.posing import pose_changes
-from workers.pipeline.synth import PRESETS, ROOM_PRESETS, PathOptions, load_model
+from workers.pipeline.synth import PATH_PRESETS, PRESETS, ROOM_PRESETS, PathOptions, load_model
 
 MIN_VIEWS = 5
 #: the timing scene: 10 objects placed ("no_change" holds the last non-symmetric one back as
@@ -95,9 +95,10 @@ TARGETS = {
 
 
 def timing_synth() -> Any:
-    """The timing scene's generator options: the bench preset, 30 views, a table."""
-    base = PRESETS["bench"]
-    return replace(base, path=replace(base.path, n_views=30), room=ROOM_PRESETS["closed_table"])
+    """The timing scene's generator options: the bench preset, a table, 30 views on the
+    path for rooms with furniture."""
+    path = replace(PATH_PRESETS["wide_high"], n_views=30)
+    return replace(PRESETS["bench"], path=path, room=ROOM_PRESETS["closed_table"])
 
 
 def views_boxed(data: CaptureData, classes: list[str], placement: dict[str, Any]) -> int:

@@ -67,7 +67,7 @@ def _camera_coords(
     which on a shared, oversubscribed machine was 10× slower than these 9 fused
     multiply-adds per point.
     """
-    m = cam_from_env.astype(x.dtype)
+    m = cam_from_env.astype(x.dtype, copy=False)
     xc = x * m[0, 0] + y * m[0, 1] + z * m[0, 2] + m[0, 3]
     yc = x * m[1, 0] + y * m[1, 1] + z * m[1, 2] + m[1, 3]
     zc = x * m[2, 0] + y * m[2, 1] + z * m[2, 2] + m[2, 3]

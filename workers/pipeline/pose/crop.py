@@ -117,7 +117,10 @@ class _Support:
 def _crop(scene: SceneCloud, centre: NDArray[np.float64], radius: float) -> SceneCloud:
     """The scene points within ``radius`` metres of ``centre`` (3,), with their normals and
     colours."""
-    keep = np.einsum("ij,ij->i", scene.points - centre, scene.points - centre) <= radius * radius
+    # a slab in x first: the full test on every point of a large scene costs 10× more
+    keep = np.flatnonzero(np.abs(scene.points[:, 0] - centre[0]) <= radius * (1.0 + 1e-9))
+    near = scene.points[keep] - centre
+    keep = keep[np.einsum("ij,ij->i", near, near) <= radius * radius]
     return SceneCloud(
         scene.points[keep],
         None if scene.normals is None else scene.normals[keep],

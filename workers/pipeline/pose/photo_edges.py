@@ -155,8 +155,8 @@ def _rims(
 class _RimStack:
     """The chosen silhouettes stacked for :func:`_cost`: (K, 3) object-frame points, each
     point's photo (K,), its camera (``k`` (3, 3, K), ``cam_from_env`` (3, 4, K), image
-    ``width``/``height`` (K,)) and offset into the photos' distance maps laid end to end
-    (flat float32)."""
+    ``width``/``height`` (K,)), offset into the photos' distance maps laid end to end
+    (flat float32) and ``per_view``, the (views,) count of points per photo."""
 
     points_object: Points
     view: NDArray[np.int64]
@@ -167,6 +167,7 @@ class _RimStack:
     offset: NDArray[np.int64]
     distance: NDArray[np.float32]
     views: int
+    per_view: NDArray[np.int64]
 
 
 def _stack(rims: Sequence[_Rim]) -> _RimStack:
@@ -187,6 +188,7 @@ def _stack(rims: Sequence[_Rim]) -> _RimStack:
         offset=(np.cumsum(area) - area)[view],
         distance=np.concatenate([r.distance.ravel() for r in rims]),
         views=len(rims),
+        per_view=np.bincount(view, None, len(rims)),
     )
 
 
@@ -200,7 +202,7 @@ def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     col = np.clip(np.round(uv[inside, 0]).astype(int), 0, width - 1)
     row = np.clip(np.round(uv[inside, 1]).astype(int), 0, stack.height[inside] - 1)
     d[inside] = np.minimum(stack.distance[stack.offset[inside] + row * width + col], cap_px)
-    per_view = np.bincount(stack.view, d, stack.views) / np.bincount(stack.view, None, stack.views)
+    per_view = np.bincount(stack.view, d, stack.views) / stack.per_view
     return float(per_view.mean())
 
 

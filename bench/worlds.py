@@ -92,7 +92,7 @@ TUNING: tuple[World, ...] = (
         "added",
         ("power_drill", "mug", "wood_block", "tomato_soup_can", "extra_large_clamp"),
         "closed_table",
-        "wide_high",
+        "ring",
         2,
     ),
     World(

@@ -166,7 +166,6 @@ class _RimStack:
     height: NDArray[np.int64]
     offset: NDArray[np.int64]
     distance: NDArray[np.float32]
-    views: int
     per_view: NDArray[np.int64]
 
 
@@ -187,7 +186,6 @@ def _stack(rims: Sequence[_Rim]) -> _RimStack:
         height=np.array([r.camera.height for r in rims])[view],
         offset=(np.cumsum(area) - area)[view],
         distance=np.concatenate([r.distance.ravel() for r in rims]),
-        views=len(rims),
         per_view=np.bincount(view, None, len(rims)),
     )
 
@@ -202,7 +200,7 @@ def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     col = np.clip(np.round(uv[inside, 0]).astype(int), 0, width - 1)
     row = np.clip(np.round(uv[inside, 1]).astype(int), 0, stack.height[inside] - 1)
     d[inside] = np.minimum(stack.distance[stack.offset[inside] + row * width + col], cap_px)
-    per_view = np.bincount(stack.view, d, stack.views) / stack.per_view
+    per_view = np.bincount(stack.view, d, len(stack.per_view)) / stack.per_view
     return float(per_view.mean())
 
 

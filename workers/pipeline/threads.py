@@ -1,7 +1,8 @@
-"""Independent pose fits on several threads: :func:`ordered_map`.
+"""Independent pieces of work (pose fits, a capture's z-buffers) on several threads:
+:func:`ordered_map`.
 
-The fits hold the GIL only between their NumPy, SciPy and Open3D calls, which release it
-for their work, so two threads keep two cores busy. Open3D's seeded RANSAC is serialised
+They hold the GIL only between their NumPy, SciPy, OpenCV and Open3D calls, which release
+it for their work, so two threads keep two cores busy. Open3D's seeded RANSAC is serialised
 by :func:`workers.pipeline.seeded.seeded_open3d`; everything else a fit touches is its own.
 """
 
@@ -45,7 +46,7 @@ def ordered_map(
             if done is not None:
                 done(k)
         return out
-    with ThreadPoolExecutor(max_workers=n, thread_name_prefix="pose") as pool:
+    with ThreadPoolExecutor(max_workers=n, thread_name_prefix="work") as pool:
         futures = [pool.submit(fn, item) for item in items]
         try:
             results = []

@@ -34,7 +34,7 @@ from workers.pipeline.compare.candidates import (
     unevidenced_added,
 )
 from workers.pipeline.compare.changes import classify_changes
-from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.data import Camera, CaptureData, TwinInstance
 from workers.pipeline.compare.evidence import (
     Captures,
     join_split_objects,
@@ -51,6 +51,7 @@ from workers.pipeline.compare.side_clusters import Library, SideInput, side_clus
 from workers.pipeline.compare.thresholds import CloudStats
 from workers.pipeline.compare.visibility import DepthMap, render_depth
 from workers.pipeline.errors import ComparisonError, InputError
+from workers.pipeline.threads import ordered_map
 
 Progress = Callable[[str, float], None]
 SIDES: tuple[Side, ...] = ("added", "removed")
@@ -73,15 +74,15 @@ def render_depth_maps(
     pts32 = np.ascontiguousarray(pts.T, dtype=np.float32)  # (3, N) columns
     tol = options.seen_colour_tolerance
     colors32 = None if colors is None or tol is None else colors.astype(np.float32)
-    maps = []
-    for cam in capture.cameras:
+
+    def render(cam: Camera) -> DepthMap:
         path = capture.photos.get(cam.name)
         if colors32 is None or tol is None or path is None:
-            maps.append(render_depth(cam, pts32, side, options.zbuffer_fill_px))
-            continue
+            return render_depth(cam, pts32, side, options.zbuffer_fill_px)
         photo = read_photo(path, cam, side)
-        maps.append(render_depth(cam, pts32, side, options.zbuffer_fill_px, colors32, photo, tol))
-    return maps
+        return render_depth(cam, pts32, side, options.zbuffer_fill_px, colors32, photo, tol)
+
+    return ordered_map(render, capture.cameras, 0)  # one camera per core at a time
 
 
 def _check_inputs(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:

@@ -26,7 +26,6 @@ from workers.pipeline.compare.visibility import (
     DepthMap,
     depth_at,
     project_in_image,
-    project_points,
 )
 from workers.pipeline.geometry import Mat4, Points
 from workers.pipeline.pose.top_view import least_turn_and_shift, turned_in_plane
@@ -192,14 +191,27 @@ def _stack(rims: Sequence[_Rim]) -> _RimStack:
 
 def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     """Mean over the photos of the mean distance (pixels, capped at ``cap_px``) from the
-    projected silhouette points to the photo's nearest edge."""
+    projected silhouette points to the photo's nearest edge. Called ~10⁴ times a pose: the
+    projection is :func:`~workers.pipeline.compare.visibility.project_points`' arithmetic
+    without its masked copies (a point out of the image reads a clipped pixel, then
+    ``cap_px``)."""
     posed = stack.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
-    uv, _, inside = project_points(stack.k, stack.cam_from_env, stack.width, stack.height, posed)
-    d = np.full(len(posed), cap_px)
-    width = stack.width[inside]
-    col = np.clip(np.round(uv[inside, 0]).astype(int), 0, width - 1)
-    row = np.clip(np.round(uv[inside, 1]).astype(int), 0, stack.height[inside] - 1)
-    d[inside] = np.minimum(stack.distance[stack.offset[inside] + row * width + col], cap_px)
+    x, y, z = posed[:, 0], posed[:, 1], posed[:, 2]
+    m, k = stack.cam_from_env, stack.k
+    xc = x * m[0, 0] + y * m[0, 1] + z * m[0, 2] + m[0, 3]
+    yc = x * m[1, 0] + y * m[1, 1] + z * m[1, 2] + m[1, 3]
+    zc = x * m[2, 0] + y * m[2, 1] + z * m[2, 2] + m[2, 3]
+    front = zc > 1e-6
+    zs = np.where(front, zc, 1.0)
+    xn, yn = xc / zs, yc / zs
+    u = k[0, 0] * xn + k[0, 1] * yn + k[0, 2]
+    v = k[1, 1] * yn + k[1, 2]
+    width, height = stack.width, stack.height
+    inside = front & (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    col = np.clip(np.round(u).astype(int), 0, width - 1)
+    row = np.clip(np.round(v).astype(int), 0, height - 1)
+    at = np.minimum(stack.distance[stack.offset + row * width + col], cap_px)
+    d = np.where(inside, at, cap_px)
     per_view = np.bincount(stack.view, d, len(stack.per_view)) / stack.per_view
     return float(per_view.mean())
 

@@ -146,7 +146,8 @@ def scene_distances(points: Points, scene_points: Points, reach_m: float) -> Flo
     near = scene_points[np.all((scene_points >= lo) & (scene_points <= hi), axis=1)]
     if len(near) == 0:
         return np.full(len(points), np.inf)
-    d, _ = cKDTree(near).query(points, distance_upper_bound=reach_m)
+    tree = cKDTree(near, balanced_tree=False, compact_nodes=False)  # built fast, same distances
+    d, _ = tree.query(points, distance_upper_bound=reach_m)
     return np.asarray(d, dtype=np.float64)
 
 

@@ -965,6 +965,28 @@ def test_an_upside_down_winner_is_also_tried_upright(shared_data: Path, tmp_path
     assert len(refiner.refined) == 1 + len(turned)
 
 
+@pytest.mark.parametrize(("upright_score", "takes_upright"), [(0.75, True), (0.65, False)])
+def test_an_upside_down_best_gives_way_to_an_upright_pose_within_upright_ratio(
+    shared_data: Path, tmp_path: Path, upright_score: float, takes_upright: bool
+) -> None:
+    """The scan tells an object's up from its down only weakly (stereo closes a mug's
+    opening, which its base fits upside down): an upright pose resting on the support that
+    scores at least ``upright_ratio`` (0.7) × an upside-down best wins; one scoring less
+    does not."""
+    from workers.pipeline.pose.refine import Refined
+    from workers.pipeline.pose.result import Trial
+
+    refiner, true, upside_down = wrench_from_above(shared_data, tmp_path)
+    assert refiner.ctx.options.upright_ratio == 0.7
+    refiner.refined = [
+        Refined(1.0, upside_down, Trial("down", 1.0, 0.5, 0.001, 0.0, upside_down)),
+        Refined(upright_score, true, Trial("up", upright_score, 0.5, 0.001, 0.0, true)),
+    ]
+    winner = refiner._winner()
+    assert (winner.env_from_object is true) == takes_upright
+    assert (winner.env_from_object is upside_down) == (not takes_upright)
+
+
 def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_them(
     shared_data: Path, tmp_path: Path
 ) -> None:

@@ -111,6 +111,10 @@ class PoseOptions:
     max_final_turn_deg: float = 3.0
     # a distinct pose scoring above this × the best makes the pose unverified (ambiguous)
     max_runner_up_ratio: float = 0.85
+    # an upright pose resting on its support that scores at least this × an upside-down
+    # best is taken instead (unverified): where stereo closes a hollow object's opening
+    # the scan barely tells up from down; lower prefers the library's up more
+    upright_ratio: float = 0.7
     # a flat pose's outline seen from above chooses among its near-ties: the least-cost
     # one when the best-scoring costs more than this × it per scan point, settled when
     # every other does; 0 disables; lower settles more

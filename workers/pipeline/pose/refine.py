@@ -214,10 +214,10 @@ class Refiner:
     def _winner(self) -> Refined:
         """The best refined pose, unless it is upside down (model up away from the
         environment's) and an upright one that rests on the support (its lowest point
-        within ``max_sink_m`` of the plane, when there is one) scores within
-        ``max_runner_up_ratio`` of it: the scan cannot tell those apart, and a library
-        model is given resting on its base. Such a pose stays unverified (its rival counts
-        as the runner-up)."""
+        within ``max_sink_m`` of the plane, when there is one) scores at least
+        ``upright_ratio`` × it: the scan cannot tell those apart, and a library model is
+        given resting on its base. Such a pose stays unverified (its rival counts as the
+        runner-up)."""
         top = self.refined[0]
         if self.ctx.upright(top.env_from_object):
             return top
@@ -233,7 +233,7 @@ class Refiner:
             (
                 r
                 for r in self.refined
-                if r.score >= o.max_runner_up_ratio * top.score
+                if r.score >= o.upright_ratio * top.score
                 and self.ctx.upright(r.env_from_object)
                 and rests(r.env_from_object)
             ),

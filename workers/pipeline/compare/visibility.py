@@ -57,7 +57,7 @@ def zbuffer_scale(camera: Camera, max_side: int) -> float:
     return min(1.0, max_side / max(camera.width, camera.height))
 
 
-def _camera_coords(
+def camera_coords(
     cam_from_env: FloatArray, x: NDArray[Any], y: NDArray[Any], z: NDArray[Any]
 ) -> tuple[NDArray[Any], NDArray[Any], NDArray[Any]]:
     """Camera coordinates of points given as columns (each (N,)), elementwise;
@@ -81,7 +81,7 @@ def _splat(
     that projects in front of ``camera`` into its image; and the buffer's width, height."""
     w = max(1, round(camera.width * scale))
     h = max(1, round(camera.height * scale))
-    xc, yc, zc = _camera_coords(camera.cam_from_env, cols[0], cols[1], cols[2])
+    xc, yc, zc = camera_coords(camera.cam_from_env, cols[0], cols[1], cols[2])
     front = np.flatnonzero(zc > 1e-6)
     xc, yc, zc = xc[front], yc[front], zc[front]
     k = camera.k
@@ -222,7 +222,7 @@ def project_points(
     """:func:`project_in_image` of (N, 3) points through one camera (``k`` (3, 3),
     ``cam_from_env`` (4, 4), ``width``/``height`` pixels) or through a camera per point,
     stacked along a last axis (``k`` (3, 3, N), ``cam_from_env`` (3, 4, N), (N,) sizes)."""
-    xc, yc, z = _camera_coords(cam_from_env, points_env[:, 0], points_env[:, 1], points_env[:, 2])
+    xc, yc, z = camera_coords(cam_from_env, points_env[:, 0], points_env[:, 1], points_env[:, 2])
     with np.errstate(divide="ignore", invalid="ignore"):
         zs = np.where(z > 0, z, np.nan)
         xn, yn = xc / zs, yc / zs

@@ -24,6 +24,7 @@ from workers.pipeline.compare.data import Camera, CaptureData
 from workers.pipeline.compare.files import read_photo
 from workers.pipeline.compare.visibility import (
     DepthMap,
+    camera_coords,
     depth_at,
     project_in_image,
 )
@@ -196,11 +197,8 @@ def _cost(stack: _RimStack, env_from_object: Mat4, cap_px: float) -> float:
     without its masked copies (a point out of the image reads a clipped pixel, then
     ``cap_px``)."""
     posed = stack.points_object @ env_from_object[:3, :3].T + env_from_object[:3, 3]
-    x, y, z = posed[:, 0], posed[:, 1], posed[:, 2]
-    m, k = stack.cam_from_env, stack.k
-    xc = x * m[0, 0] + y * m[0, 1] + z * m[0, 2] + m[0, 3]
-    yc = x * m[1, 0] + y * m[1, 1] + z * m[1, 2] + m[1, 3]
-    zc = x * m[2, 0] + y * m[2, 1] + z * m[2, 2] + m[2, 3]
+    xc, yc, zc = camera_coords(stack.cam_from_env, posed[:, 0], posed[:, 1], posed[:, 2])
+    k = stack.k
     front = zc > 1e-6
     zs = np.where(front, zc, 1.0)
     xn, yn = xc / zs, yc / zs

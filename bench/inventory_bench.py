@@ -15,9 +15,9 @@ is scored against the capture's true placements:
 - **poses**: symmetry-aware errors (:func:`workers.demo.evaluate.errors`), all and verified;
 - **twin**: the service's rules run on the world's two snapshots (baseline from the first
   inventory; the comparison's changes posed as the comparison job does; the second
-  inventory confirms, refreshes beyond :data:`app.core.inventory.DRIFT_TRANSLATION_M` /
-  ``DRIFT_ROTATION_DEG`` where :func:`app.core.inventory.takes_inventory_pose` lets it,
-  adds posed objects nothing accounts for) against the after
+  inventory confirms, refreshes where :func:`app.core.inventory.refreshes` lets it,
+  reopens what the comparison removed but it shows, adds posed objects nothing accounts
+  for) against the after
   capture's truth: every object with class and pose within 1 cm / 3°, nothing extra;
 - **time**: the inventory's wall and CPU seconds per capture beside the compare stage's on
   the same pair in the same run (the baseline), on this machine's cores.
@@ -41,7 +41,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.inventory import match_reach_m, moved_beyond_noise, takes_inventory_pose
+from app.core.inventory import match_reach_m, refreshes
 from bench.scenarios_bench import (
     ROOT,
     TMP,
@@ -227,6 +227,94 @@ def _twin_from(result: InventoryResult) -> list[dict[str, Any]]:
     ]
 
 
+def _refreshes(
+    twin: dict[str, Any], found: dict[str, Any], model: PreparedModel, just_posed: bool
+) -> bool:
+    return refreshes(
+        twin["pose"],
+        twin["quality"],
+        centre_of(twin["pose"], model)[:3],
+        found["pose"],
+        found["pose_quality"],
+        centre_of(found["pose"], model)[:3],
+        just_posed,
+    )
+
+
+def _confirm(
+    current: list[dict[str, Any]],
+    removed: list[dict[str, Any]],
+    touched: set[str],
+    found: list[dict[str, Any]],
+    models: dict[str, PreparedModel],
+) -> tuple[list[dict[str, Any]], dict[str, int]]:
+    """The second inventory on the twin as the comparison left it
+    (:func:`app.core.inventory.confirm`'s rules): the twin's entries after, and how many
+    were refreshed, restored (removed by the comparison, shown by the inventory) and added."""
+    reach = {n: match_reach_m(m.diameter_m) for n, m in models.items()}
+
+    def as_truth(entries: list[dict[str, Any]]) -> list[dict[str, Any]]:
+        return [{"object": t["object"], "env_from_object": t["pose"]} for t in entries]
+
+    pairs = _pairs(as_truth(current), found, reach, models)
+    drifted = 0
+    for i, j in pairs:
+        model = models[found[j]["object"]]
+        if _refreshes(current[i], found[j], model, current[i]["id"] in touched):
+            current[i]["pose"], current[i]["quality"] = found[j]["pose"], found[j]["pose_quality"]
+            drifted += 1
+    paired = {j for _, j in pairs}
+    left = [j for j in range(len(found)) if j not in paired]
+    restores = _pairs(as_truth(removed), [found[j] for j in left], reach, models)
+    for i, k in restores:
+        entry, f = removed[i], found[left[k]]
+        if _refreshes(entry, f, models[f["object"]], False):
+            entry["pose"], entry["quality"] = f["pose"], f["pose_quality"]
+        current.append(entry)
+        paired.add(left[k])
+    added = [
+        {"id": f"inv2-{j}", "object": f["object"], "pose": f["pose"]}
+        for j, f in enumerate(found)
+        if j not in paired
+    ]
+    counts = {
+        "drift_refreshed": drifted,
+        "restored": len(restores),
+        "added_by_inventory": len(added),
+    }
+    return current + added, counts
+
+
+def _apply(
+    records: list[dict[str, Any]], twin: list[dict[str, Any]]
+) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]], set[str]]:
+    """A comparison's posed changes on the twin's entries (app.core.twin.apply_changes):
+    the entries after by id, those removed by id, and the ids the changes posed."""
+    by_id = {t["id"]: t for t in twin}
+    removed: dict[str, dict[str, Any]] = {}
+    touched: set[str] = set()
+    for r in records:
+        kind = r["type"]
+        posed = {"object": r["object"], "pose": r.get("pose"), "quality": r.get("pose_quality")}
+        if kind == "added" and r.get("pose") is not None:
+            by_id[r["id"]] = {"id": r["id"], **posed}
+            touched.add(r["id"])
+        elif kind == "removed":
+            gone = by_id.pop(str(r.get("instance_id")), None)
+            if gone is not None:
+                removed[gone["id"]] = gone
+        elif kind == "moved" and r.get("pose") is not None:
+            iid = str(r.get("instance_id"))
+            by_id[iid] = {"id": iid, **posed}
+            touched.add(iid)
+        elif kind == "swapped":
+            by_id.pop(str(r.get("replaced_instance_id")), None)
+            if r.get("pose") is not None:
+                by_id[r["id"]] = {"id": r["id"], **posed}
+                touched.add(r["id"])
+    return by_id, removed, touched
+
+
 def twin_check(
     truth: dict[str, Any],
     before: CaptureData,
@@ -254,55 +342,11 @@ def twin_check(
     result = compare_snapshots(before, after, instances, classes, diameters, options)
     records = pose_changes(result, after, classes, models, models.__getitem__, options)
     compare_s = time.perf_counter() - t0
-    by_id = {t["id"]: t for t in twin}
-    touched: set[str] = set()
-    for r in records:
-        kind = r["type"]
-        posed = {"object": r["object"], "pose": r.get("pose"), "quality": r.get("pose_quality")}
-        if kind == "added" and r.get("pose") is not None:
-            by_id[r["id"]] = {"id": r["id"], **posed}
-            touched.add(r["id"])
-        elif kind == "removed":
-            by_id.pop(str(r.get("instance_id")), None)
-        elif kind == "moved" and r.get("pose") is not None:
-            iid = str(r.get("instance_id"))
-            by_id[iid] = {"id": iid, **posed}
-            touched.add(iid)
-        elif kind == "swapped":
-            by_id.pop(str(r.get("replaced_instance_id")), None)
-            if r.get("pose") is not None:
-                by_id[r["id"]] = {"id": r["id"], **posed}
-                touched.add(r["id"])
-    # the second inventory confirms (app.core.inventory.confirm's rules)
+    by_id, removed, touched = _apply(records, twin)
     found = [o.to_json() for o in inv_after.objects if o.env_from_object is not None]
-    current = list(by_id.values())
-    reach = {n: match_reach_m(m.diameter_m) for n, m in models.items()}
-    as_truth = [{"object": t["object"], "env_from_object": t["pose"]} for t in current]
-    pairs = _pairs(as_truth, found, reach, models)
-    drifted = 0
-    for i, j in pairs:
-        f = found[j]
-        takes = takes_inventory_pose(current[i]["pose"], current[i]["quality"], f["pose_quality"])
-        fresh = current[i]["id"] not in touched
-        symmetric = bool((f["pose_quality"] or {}).get("ambiguous"))
-        model = models[f["object"]]
-        moved = moved_beyond_noise(
-            current[i]["pose"],
-            f["pose"],
-            centre_of(current[i]["pose"], model)[:3],
-            centre_of(f["pose"], model)[:3],
-            symmetric,
-        )
-        if takes and fresh and moved:
-            current[i]["pose"], current[i]["quality"] = f["pose"], f["pose_quality"]
-            drifted += 1
-    paired = {j for _, j in pairs}
-    added = [
-        {"id": f"inv2-{j}", "object": f["object"], "pose": f["pose"]}
-        for j, f in enumerate(found)
-        if j not in paired
-    ]
-    current += added
+    current, confirmed = _confirm(
+        list(by_id.values()), list(removed.values()), touched, found, models
+    )
     # against the truth of the after capture
     placements = [p for p in truth["after"] if not p.get("distractor")]
     match_reach = {n: max(0.5 * m.diameter_m, 0.05) for n, m in models.items()}
@@ -326,8 +370,7 @@ def twin_check(
     return {
         "changes": [{"type": r["type"], "object": r.get("object")} for r in records],
         "truth_changes": [{"type": c["type"], "object": c["object"]} for c in truth["changes"]],
-        "drift_refreshed": drifted,
-        "added_by_inventory": len(added),
+        **confirmed,
         "objects": rows,
         "extra": extra,
         "equals_truth": not extra and all(r.get("within_pose_target") for r in visible),

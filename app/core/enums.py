@@ -95,6 +95,7 @@ class TwinEdit(StrEnum):
     retired = "retired"  # closed by hand (DELETE)
     inventoried = "inventoried"  # found by a snapshot's inventory (app.core.inventory)
     drifted = "drifted"  # an inventory's pose moved beyond the estimate's noise
+    restored = "restored"  # reopened: its comparison removed it, its inventory shows it there
 
 
 class EventType(StrEnum):

@@ -14,9 +14,13 @@ When the twin reaches the snapshot (app.core.twin.advance):
   when the inventory's pose is further from the twin's than the pose estimate's noise
   (:data:`DRIFT_TRANSLATION_M`, :data:`DRIFT_ROTATION_DEG`), which also catches a slow
   drift no single comparison flagged, and may replace it (:func:`takes_inventory_pose`:
-  verified, or both unverified estimates); a posed object no instance accounts for is
-  added (``inventoried``), as the first snapshot would have. An instance no object confirms
-keeps its state: not seen.
+  verified, or both unverified estimates; where the comparison just posed the instance,
+  only a verified pose replacing an unverified one); an instance the comparison
+  ``removed`` that the inventory still shows where it stood (an object of its class within
+  :func:`match_reach_m` that no open instance accounts for) is reopened, with a record
+  ``restored``, so it keeps its id and external id; a posed object no instance accounts
+  for is added (``inventoried``), as the first snapshot would have. An instance no object
+  confirms keeps its state: not seen.
 
 Never commits.
 """
@@ -42,7 +46,7 @@ from app.core.models import (
     SnapshotObject,
     TwinInstance,
 )
-from app.core.twin_records import open_instances
+from app.core.twin_records import open_instances, removed_instances
 
 #: a verified inventory pose this far from the twin's (metres, degrees) is a real move, not
 #: the pose estimate's noise: the inventory's pose targets (every verified pose within
@@ -301,37 +305,99 @@ def takes_inventory_pose(
     )
 
 
+def _verified(quality: Mapping[str, Any] | None) -> bool:
+    return bool((quality or {}).get("verified"))
+
+
+def refreshes(
+    twin_pose: Any,
+    twin_quality: Mapping[str, Any] | None,
+    twin_centre: Any,
+    found_pose: Any,
+    found_quality: Mapping[str, Any] | None,
+    found_centre: Any,
+    just_posed: bool,
+) -> bool:
+    """Whether an inventory's pose replaces an instance's (see the module docstring):
+    :func:`takes_inventory_pose` and :func:`moved_beyond_noise`; an instance the comparison
+    of the same snapshot ``just_posed`` gives way to a verified pose only, and only when its
+    own is unverified: both were estimated from the same capture."""
+    if found_pose is None:
+        return False
+    if just_posed:
+        may = _verified(found_quality) and not _verified(twin_quality)
+    else:
+        may = takes_inventory_pose(twin_pose, twin_quality, found_quality)
+    return may and moved_beyond_noise(
+        twin_pose,
+        found_pose,
+        twin_centre,
+        found_centre,
+        bool((found_quality or {}).get("ambiguous")),
+    )
+
+
+def _refreshes(instance: TwinInstance, obj: SnapshotObject, head_id: str) -> bool:
+    return refreshes(
+        instance.pose,
+        instance.pose_quality,
+        instance.centroid_env,
+        obj.pose,
+        obj.pose_quality,
+        obj.centroid_env,
+        just_posed=instance.since_snapshot_id == head_id,
+    )
+
+
+def _restore(
+    session: Session, instance: TwinInstance, head_id: str, comparison_id: str, obj: SnapshotObject
+) -> None:
+    """Reopen an instance the comparison removed but the same snapshot's inventory shows
+    where it stood, with a record ``restored`` (the inventory's pose where it may replace
+    the instance's, else the instance's own)."""
+    instance.closed_snapshot_id, instance.closed_at = None, None
+    if _refreshes(instance, obj, head_id):
+        _note(session, instance, head_id, comparison_id, TwinEdit.restored, obj)
+        return
+    session.add(
+        InstancePose(
+            instance_id=instance.id,
+            snapshot_id=head_id,
+            comparison_id=comparison_id,
+            change_type=TwinEdit.restored,
+            pose=instance.pose,
+            centroid_env=instance.centroid_env,
+        )
+    )
+
+
 def confirm(
     session: Session, env: Environment, head: Snapshot, comparison_id: str | None
 ) -> dict[str, list[TwinInstance]]:
     """A later snapshot's inventory against the twin as its comparison left it (see the
-    module docstring); returns the instances ``seen``, ``drifted`` and ``added``."""
+    module docstring); returns the instances ``seen``, ``drifted``, ``restored`` and
+    ``added``."""
     found = objects_of(session, head.id)
-    out: dict[str, list[TwinInstance]] = {"seen": [], "drifted": [], "added": []}
+    out: dict[str, list[TwinInstance]] = {"seen": [], "drifted": [], "restored": [], "added": []}
     if not found:
         return out
     library = objects.by_names(session, sorted({o.object_name for o in found}))
-    instances = open_instances(session, env.id)
-    matched = _pairs(instances, found, library)
+    matched = _pairs(open_instances(session, env.id), found, library)
     for instance, obj in matched:
         obj.instance_id = instance.id
         out["seen"].append(instance)
-        touched = instance.since_snapshot_id == head.id  # the comparison just posed it
-        if (
-            obj.pose is not None
-            and not touched
-            and takes_inventory_pose(instance.pose, instance.pose_quality, obj.pose_quality)
-            and moved_beyond_noise(
-                instance.pose,
-                obj.pose,
-                instance.centroid_env,
-                obj.centroid_env,
-                bool((obj.pose_quality or {}).get("ambiguous")),
-            )
-        ):
+        if _refreshes(instance, obj, head.id):
             _note(session, instance, head.id, comparison_id, TwinEdit.drifted, obj)
             out["drifted"].append(instance)
     paired = {id(obj) for _, obj in matched}
+    if comparison_id is not None:
+        left = [obj for obj in found if id(obj) not in paired and obj.pose is not None]
+        removed = removed_instances(session, head.id, comparison_id)
+        for instance, obj in _pairs(removed, left, library):
+            _restore(session, instance, head.id, comparison_id, obj)
+            obj.instance_id = instance.id
+            paired.add(id(obj))
+            out["restored"].append(instance)
     for obj in found:
         if id(obj) in paired or obj.pose is None:
             continue

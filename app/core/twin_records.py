@@ -7,6 +7,7 @@ from collections.abc import Iterable
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from app.core.enums import ChangeType
 from app.core.models import Comparison, InstancePose, TwinInstance
 
 
@@ -44,6 +45,24 @@ def changed_instances(
         latest.pop(instance.id, None)
         latest[instance.id] = (record, instance)
     return list(latest.values())
+
+
+def removed_instances(session: Session, snapshot_id: str, comparison_id: str) -> list[TwinInstance]:
+    """The instances a comparison's ``removed`` changes closed at ``snapshot_id`` (and that
+    stay closed), in the order the twin closed them."""
+    return list(
+        session.scalars(
+            select(TwinInstance)
+            .join(InstancePose, InstancePose.instance_id == TwinInstance.id)
+            .where(
+                InstancePose.snapshot_id == snapshot_id,
+                InstancePose.comparison_id == comparison_id,
+                InstancePose.change_type == ChangeType.removed,
+                TwinInstance.closed_snapshot_id == snapshot_id,
+            )
+            .order_by(InstancePose.created_at, InstancePose.id)
+        )
+    )
 
 
 def inventoried_instances(

@@ -209,7 +209,8 @@ class PoseRecord(BaseModel):
     change_type: str = Field(
         description="a comparison's change (added, removed, moved, swapped), a change made "
         "through the API (seeded, corrected, retired) or an inventory's (inventoried: found "
-        "by a snapshot's inventory; drifted: its pose moved beyond the estimate's noise)"
+        "by a snapshot's inventory; drifted: its pose moved beyond the estimate's noise; "
+        "restored: reopened, since the snapshot whose comparison removed it still shows it)"
     )
     pose: Pose | None
     at: datetime

@@ -16,6 +16,7 @@ from sqlalchemy.orm import Session
 from app.core import inventory, twin
 from app.core.enums import ComparisonState, SnapshotState, TwinEdit
 from app.core.models import (
+    Change,
     Comparison,
     Environment,
     Event,
@@ -83,12 +84,19 @@ def reconstructed(session: Session, snap: Snapshot, objects: list[dict[str, Any]
 
 
 def succeed_comparison(
-    session: Session, env: Environment, before: Snapshot, after: Snapshot
+    session: Session,
+    env: Environment,
+    before: Snapshot,
+    after: Snapshot,
+    changes: list[dict[str, Any]] = (),  # type: ignore[assignment]
 ) -> None:
+    """The automatic comparison of ``after`` succeeds with ``changes`` (Change columns)."""
     comparison = session.scalar(
         select(Comparison).where(Comparison.after_id == after.id, Comparison.automatic.is_(True))
     )
     assert comparison is not None and comparison.before_id == before.id
+    for position, change in enumerate(changes):
+        comparison.changes.append(Change(position=position, **change))
     comparison.state = ComparisonState.succeeded
     session.flush()
     twin.advance(session, env.id)
@@ -207,6 +215,91 @@ def test_an_unverified_twin_pose_gives_way_to_a_newer_estimate_a_verified_one_do
     }
     assert history(session, drill.id) == ["inventoried"]
     assert np.allclose(drill.pose, pose_at(0.1))
+
+
+def test_a_removal_its_own_inventory_contradicts_reopens_the_instance(
+    session: Session, env: Environment
+) -> None:
+    seeded = TwinInstance(
+        environment_id=env.id, object_name="bowl", pose=pose_at(0.5), external_id="erp:7"
+    )
+    session.add(seeded)
+    session.flush()
+    first = snapshot(session, env, 1)
+    reconstructed(session, first, [found("bowl", pose_at(0.5)), found("drill", pose_at(0.1))])
+    by_name = {i.object_name: i for i in twin.current(session, env.id)}
+    bowl, drill = by_name["bowl"], by_name["drill"]
+    assert bowl.id == seeded.id
+    # seq 2's comparison removes both (a stretch of shelf the second cloud lacks was named
+    # after the bowl); its inventory still shows the bowl where it stood, not the drill
+    second = snapshot(session, env, 2)
+    reconstructed(session, second, [found("bowl", pose_at(0.503))])
+    succeed_comparison(
+        session,
+        env,
+        first,
+        second,
+        [
+            {"type": "removed", "object_name": "bowl", "instance_id": bowl.id},
+            {"type": "removed", "object_name": "drill", "instance_id": drill.id},
+        ],
+    )
+    current = twin.current(session, env.id)
+    assert [i.id for i in current] == [bowl.id]  # the drill's removal stands
+    assert bowl.external_id == "erp:7" and bowl.closed_snapshot_id is None
+    assert history(session, bowl.id) == ["inventoried", "removed", "restored"]
+    assert x_of(bowl) == 0.5  # 3 mm: the pose estimate's noise, the twin's pose stands
+    assert drill.closed_snapshot_id == second.id
+    assert inventory.last_seen(session, [bowl.id]) == {bowl.id: second.id}
+    event = session.scalars(
+        select(Event).where(Event.environment_id == env.id).order_by(Event.created_at.desc())
+    ).first()
+    assert event is not None and event.data["outcome"] == "applied"
+    assert {
+        i["instance_id"]: (i["change_type"], i["present"]) for i in event.data["instances"]
+    } == {
+        bowl.id: ("restored", True),
+        drill.id: ("removed", False),
+    }
+
+
+def test_a_pose_the_comparison_just_estimated_gives_way_to_a_verified_one_only(
+    session: Session, env: Environment
+) -> None:
+    first = snapshot(session, env, 1)
+    reconstructed(session, first, [found("bowl", pose_at(0.5)), found("drill", pose_at(0.1))])
+    by_name = {i.object_name: i for i in twin.current(session, env.id)}
+    bowl, drill = by_name["bowl"], by_name["drill"]
+    # seq 2's comparison moves both, unverified, the drill turned over; its inventory
+    # poses the drill verified and the bowl unverified, each 20° from the comparison's
+    second = snapshot(session, env, 2)
+    reconstructed(
+        session,
+        second,
+        [found("drill", pose_at(0.3)), found("bowl", pose_at(0.8, yaw_deg=20.0), verified=False)],
+    )
+    unverified = {"verified": False, "reasons": ["fitness"]}
+    succeed_comparison(
+        session,
+        env,
+        first,
+        second,
+        [
+            {
+                "type": "moved",
+                "object_name": name,
+                "instance_id": instance.id,
+                "pose": pose_at(x, yaw_deg=yaw),
+                "pose_quality": unverified,
+            }
+            for name, instance, x, yaw in (("drill", drill, 0.3, 170.0), ("bowl", bowl, 0.8, 0.0))
+        ],
+    )
+    assert history(session, drill.id) == ["inventoried", "moved", "drifted"]
+    assert np.allclose(drill.pose, pose_at(0.3)) and drill.pose_quality["verified"]
+    # two unverified estimates from the same capture: the comparison's stands
+    assert history(session, bowl.id) == ["inventoried", "moved"]
+    assert np.allclose(bowl.pose, pose_at(0.8))
 
 
 def test_which_pose_may_replace_which() -> None:

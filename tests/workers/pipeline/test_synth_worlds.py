@@ -43,6 +43,7 @@ from workers.pipeline.synth.markers import marker_corners_m, marker_sheet
 from workers.pipeline.synth.options import RoomOptions
 from workers.pipeline.synth.render import Renderer, distort_normalised
 from workers.pipeline.synth.render import _pixel_rays as pixel_rays
+from workers.pipeline.synth.scene import resting_faces
 
 TINY = PRESETS["tiny"]
 SMALL = CameraOptions(width=160, height=120, focal_px=130.0)
@@ -408,3 +409,38 @@ def test_cli_builds_a_wider_world(tmp_path: Path, capsys: pytest.CaptureFixture[
     assert gt["changes"][0]["object"] == "crate"
     assert cli([*args, "--distractors", "ghost"]) == 1
     assert "unknown distractor" in capsys.readouterr().err
+
+
+def test_resting_faces_of_a_box_are_its_five_sides_but_the_base() -> None:
+    corners = np.array([[x, y, z] for x in (-0.1, 0.1) for y in (-0.05, 0.05) for z in (0, 0.05)])
+    normals = sorted(tuple(np.round(n, 6)) for n in resting_faces(corners))
+    assert normals == sorted([(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1)])
+    # a long low wedge: its steep short face does not hold the foot of its centre
+    section = [(0.0, 0.0), (1.0, 0.0), (0.9, 0.1)]
+    wedge = np.array([[x, y, z] for x, z in section for y in (0.0, 0.2)])
+    normals = resting_faces(wedge)
+    assert any(n[2] > 0.9 for n in normals)  # the long slope
+    assert not any(n[0] > 0.5 for n in normals)
+
+
+def test_lying_objects_rest_on_another_face_apart() -> None:
+    models = builtin_models()
+    names = tuple(m.name for m in models)
+    options = replace(TINY, lying=names)
+    for seed in range(3):
+        scenario = build_scenario("multiple", models, seed, options)
+        for capture in ("before", "after"):
+            _check_rests(scenario, capture)
+            placed = scenario.capture(capture)
+            for p in placed:
+                # object z no longer up: set down on a side or upside down
+                assert p.env_from_object[2, 2] < np.cos(np.radians(10.0)), (seed, p.model.name)
+            for i, a in enumerate(placed):
+                for b in placed[i + 1 :]:
+                    (xa, ra), (xb, rb) = a.footprint_env(), b.footprint_env()
+                    if a.support == b.support:
+                        assert np.linalg.norm(xa - xb) >= ra + rb, (a.model.name, b.model.name)
+    upright = build_scenario("multiple", models, 0, TINY)
+    assert all(p.env_from_object[2, 2] == pytest.approx(1.0) for p in upright.before)
+    with pytest.raises(InputError, match="lying"):
+        build_scenario("moved", models, 0, replace(TINY, lying=("ghost",)))

@@ -147,6 +147,9 @@ class SynthOptions:
     distractors: tuple[str, ...] = ()
     # the model the change acts on (removed, moved or swapped out); None: drawn at random
     target: str | None = None
+    # models set down on another face than their base (on a side, upside down), drawn at
+    # random among the faces they can rest on: poses the upright placements never show
+    lying: tuple[str, ...] = ()
 
 
 LAYOUTS: tuple[str, ...] = ("closed", "one_wall", "two_walls")

@@ -2,7 +2,9 @@
 
 All poses are ``env_from_object`` (4×4 float64, metres), environment z up, floor at z = 0.
 Objects rest on a support (floor, table top or shelf top) by their lowest vertex and only
-turn about z. A new or moved object never stands where a removed or moved one stood (only a
+turn about z, except those ``SynthOptions.lying`` names: each is set down on another face
+of its convex hull that can take its weight (:func:`resting_faces`), drawn at random.
+A new or moved object never stands where a removed or moved one stood (only a
 swap puts an object there), so each change has a place of its own. Distractors (objects
 outside the library) are added in the after capture, on the floor.
 """
@@ -14,6 +16,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
 
 from workers.pipeline.errors import InputError
 from workers.pipeline.geometry import Mat4, make_rigid
@@ -31,9 +34,14 @@ class Placement:
     model: ObjectModel
     env_from_object: Mat4
     support: str = "floor"
+    # (centre xy (2,), radius) in metres of a model set down on another face than its base;
+    # None: the upright model's footprint, turned with the pose
+    footprint_m: tuple[np.ndarray, float] | None = None
 
     def footprint_env(self) -> tuple[np.ndarray, float]:
         """(centre xy (2,), radius) in metres of the model's footprint circle on its support."""
+        if self.footprint_m is not None:
+            return self.footprint_m
         centre, radius = self.model.footprint
         xy = self.env_from_object[:2, :2] @ centre + self.env_from_object[:2, 3]
         return xy, radius
@@ -193,20 +201,91 @@ def _rest_pose(model: ObjectModel, xy: np.ndarray, yaw_rad: float, support_z: fl
     return make_rigid(rot, [float(origin_xy[0]), float(origin_xy[1]), z])
 
 
+#: a resting face holds the foot of the model's centre at least this far inside its edges
+_REST_MARGIN_M = 0.005
+
+
+def resting_faces(vertices: np.ndarray) -> list[np.ndarray]:
+    """Unit outward normals (object frame) of the faces of the convex hull of (N, 3)
+    ``vertices`` (metres) that the model can rest on: coplanar hull triangles (within 1°)
+    merged, the foot of the hull's centroid inside the face by :data:`_REST_MARGIN_M`.
+    The base (normal within 10° of −z) is left out."""
+    hull = ConvexHull(vertices)
+    apex = vertices[hull.vertices].mean(axis=0)  # the hull's volume centroid, by tetrahedra
+    tri = vertices[hull.simplices] - apex
+    volumes = np.abs(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])))
+    centre = apex + (volumes[:, None] * tri.sum(axis=1) / 4.0).sum(axis=0) / volumes.sum()
+    normals = hull.equations[:, :3]
+    taken = np.zeros(len(normals), dtype=bool)
+    out = []
+    for i in range(len(normals)):
+        if taken[i]:
+            continue
+        group = (normals @ normals[i] > np.cos(np.radians(1.0))) & ~taken
+        taken |= group
+        n = normals[group].mean(axis=0)
+        n /= np.linalg.norm(n)
+        if n[2] < -np.cos(np.radians(10.0)):
+            continue
+        corners = vertices[np.unique(hull.simplices[group])]
+        axes = np.linalg.svd(np.cross(n, np.eye(3)))[2][:2]  # two axes across n
+        flat, foot = corners @ axes.T, centre @ axes.T
+        if len(flat) < 3:
+            continue
+        try:
+            edges = ConvexHull(flat).equations
+        except QhullError:
+            continue
+        if np.all(edges[:, :2] @ foot + edges[:, 2] <= -_REST_MARGIN_M):
+            out.append(n)
+    return out
+
+
+def _turn_down(normal: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation taking unit ``normal`` to −z (the shortest turn)."""
+    down = np.array([0.0, 0.0, -1.0])
+    axis = np.cross(normal, down)
+    s, c = float(np.linalg.norm(axis)), float(normal @ down)
+    if s < 1e-9:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / s
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    rot: np.ndarray = np.eye(3) + s * cross + (1.0 - c) * cross @ cross
+    return rot
+
+
 class _Placer:
     """Rejection sampling of free resting poses: circles around each object's z axis must
     not overlap each other, the marker tiles or the raised supports (floor objects), and
     objects on a table or shelf must lie within its top."""
 
-    def __init__(self, room: RoomOptions, markers: MarkerSheet, rng: np.random.Generator):
+    def __init__(
+        self,
+        room: RoomOptions,
+        markers: MarkerSheet,
+        rng: np.random.Generator,
+        lying: Sequence[str] = (),
+    ):
         self.room, self.markers, self.rng = room, markers, rng
         self.margin = 0.03
         self.supports = {s.name: s for s in supports(room)}
+        self.lying = frozenset(lying)
 
-    def _free(
-        self, model: ObjectModel, xy: np.ndarray, support: str, others: Sequence[Placement]
-    ) -> bool:
-        r = model.footprint_radius_m()
+    def _set_down(self, model: ObjectModel) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """For a model ``lying`` names: (the rotation (3, 3) setting one of its
+        :func:`resting_faces`, drawn at random, down, the footprint centre (2,) and radius
+        of the model so turned); None for any other model (no draw is made)."""
+        if model.name not in self.lying:
+            return None
+        faces = resting_faces(np.asarray(model.mesh.vertices, dtype=np.float64))
+        if not faces:
+            raise InputError(f"{model.name} has no face to lie on but its base")
+        tilt = _turn_down(faces[int(self.rng.integers(len(faces)))])
+        xy = (np.asarray(model.mesh.vertices, dtype=np.float64) @ tilt.T)[:, :2]
+        centre = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
+        return tilt, centre, float(np.linalg.norm(xy - centre, axis=1).max())
+
+    def _free(self, r: float, xy: np.ndarray, support: str, others: Sequence[Placement]) -> bool:
         for other in others:
             if other.support != support:
                 continue
@@ -248,6 +327,8 @@ class _Placer:
         ``near_xy`` (swaps) or ≥ ``min_move_m`` away from ``away_from`` (moves). Raises
         _NoRoom when no free pose is found."""
         names = ["floor"] if floor_only else list(self.supports)
+        lying = self._set_down(model)
+        footprint_r = model.footprint_radius_m() if lying is None else lying[2]
         for attempt in range(400):
             support = names[int(self.rng.integers(len(names)))]
             if near_xy is not None:
@@ -266,11 +347,19 @@ class _Placer:
                 shift = float(np.linalg.norm(away_from.footprint_env()[0] - xy))
                 if shift < min_move_m:
                     continue
-            if not self._free(model, xy, support, others):
+            if not self._free(footprint_r, xy, support, others):
                 continue
             support_z = self.supports[support].z_m
             yaw = self.rng.uniform(-np.pi, np.pi)
-            return Placement(instance_id, model, _rest_pose(model, xy, yaw, support_z), support)
+            if lying is None:
+                pose = _rest_pose(model, xy, yaw, support_z)
+                return Placement(instance_id, model, pose, support)
+            tilt, centre, _ = lying
+            rot = rot_z(yaw) @ tilt
+            origin_xy = xy - rot_z(yaw)[:2, :2] @ centre
+            z = support_z - float((np.asarray(model.mesh.vertices) @ rot.T)[:, 2].min())
+            pose = make_rigid(rot, [float(origin_xy[0]), float(origin_xy[1]), z])
+            return Placement(instance_id, model, pose, support, (xy, footprint_r))
         raise _NoRoom(f"no free place for {model.name}")
 
 
@@ -319,10 +408,14 @@ def build_scenario(
         raise InputError(f"scenario {scenario!r} needs two non-symmetric objects among {names}")
     if options.target is not None and options.target not in [m.name for m in staying]:
         raise InputError(f"target {options.target!r} is not among the staying objects")
+    if set(options.lying) - set(names):
+        unknown = sorted(set(options.lying) - set(names))
+        raise InputError(f"lying names {unknown}, not among the objects {names}")
     distractors = tuple(distractor_model(name) for name in options.distractors)
     markers = marker_sheet(options.room)
     for attempt in range(50):
-        placer = _Placer(options.room, markers, np.random.default_rng([seed, 1, attempt]))
+        rng = np.random.default_rng([seed, 1, attempt])
+        placer = _Placer(options.room, markers, rng, options.lying)
         try:
             before, after, changes = _layout(
                 scenario, staying, models[spare_index], placer, options

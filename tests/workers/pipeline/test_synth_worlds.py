@@ -402,11 +402,14 @@ def test_model_loads_ycb_symmetry(shared_data: Path) -> None:
 def test_cli_builds_a_wider_world(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     args = ["--scenario", "removed", "--out", str(tmp_path), "--preset", "tiny", "--views", "1"]
     world = ["--room", "one_wall", "--path", "low_high", "--real-camera"]
-    assert cli([*args, *world, "--distractors", "column", "--target", "crate"]) == 0
+    lying = ["--lying", "crate,wedge"]
+    assert cli([*args, *world, "--distractors", "column", "--target", "crate", *lying]) == 0
     gt = json.loads((tmp_path / "ground_truth.json").read_text())
     assert gt["room"]["layout"] == "one_wall" and gt["effects"]["distortion"] == "OPENCV"
     assert [c.get("distractor") for c in gt["changes"]] == [None, "column"]
     assert gt["changes"][0]["object"] == "crate"
+    crate = next(p for p in gt["before"] if p["object"] == "crate")
+    assert np.asarray(crate["env_from_object"])[2, 2] < 0.98  # not on its base
     assert cli([*args, "--distractors", "ghost"]) == 1
     assert "unknown distractor" in capsys.readouterr().err
 

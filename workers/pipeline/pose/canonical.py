@@ -21,6 +21,21 @@ from workers.pipeline.model.symmetry_group import SymmetrySpec
 from workers.pipeline.pose.fit import Target
 
 
+#: equivalents whose object up is tilted from the environment's up at most this much more
+#: than the least tilted one's count as standing the same way up (an angle, not a cosine:
+#: near the horizontal a cosine window of 0.02 is one degree, and a lying object's
+#: equivalents, all horizontal, fall on either side of it by the fit's noise)
+UP_WINDOW_DEG = 11.5
+
+
+def _same_way_up(ups: NDArray[np.float64]) -> NDArray[np.bool_]:
+    """(N,) which of (N,) cosines between object up and environment up stand as the least
+    tilted does, within :data:`UP_WINDOW_DEG`."""
+    tilt = np.degrees(np.arccos(np.clip(ups, -1.0, 1.0)))
+    same: NDArray[np.bool_] = tilt <= tilt.min() + UP_WINDOW_DEG
+    return same
+
+
 @dataclass(frozen=True)
 class CanonicalPose:
     """The published ``env_from_object``, why (``chosen_by``: "unique", "colour",
@@ -73,15 +88,16 @@ def _choose_equivalent(
 ) -> CanonicalPose:
     """Pick one pose among ``env_from_object @ S`` (without the continuous axis).
 
-    Order: ``colour`` (a discrete group whose colours break it: among the elements whose
-    object up agrees best with ``up_env`` — never upside down — the one whose colour
-    agreement beats the others by ``colour_margin``), then ``previous``, then ``up``."""
+    Order: ``colour`` (a discrete group whose colours break it: among the elements that
+    stand the same way up as the least tilted (:func:`_same_way_up`) — never upside down;
+    every side of a lying box — the one whose colour agreement beats the others by
+    ``colour_margin``), then ``previous``, then ``up``."""
     if not symmetry.is_symmetric:
         return CanonicalPose(env_from_object, "unique", ())
     if colour is not None and symmetry.kind == "discrete" and symmetry.appearance_breaks:
         poses = [env_from_object @ s for s in symmetry.rotations]
         ups = np.array([p[:3, :3] @ up_object @ up_env for p in poses])
-        upright = [p for p, u in zip(poses, ups, strict=True) if u >= ups.max() - 0.02]
+        upright = [p for p, same in zip(poses, _same_way_up(ups), strict=True) if same]
         scores = np.array([colour(p) for p in upright])
         if len(upright) > 1 and np.isfinite(scores).all():
             order = np.argsort(-scores)
@@ -104,8 +120,7 @@ def _choose_equivalent(
         best = int(np.argmax(cos))
         chosen_by = "previous"
     else:
-        up = rots @ up_object @ up_env
-        near = up >= up.max() - 0.02  # within ~11° of the best up agreement
+        near = _same_way_up(rots @ up_object @ up_env)
         closeness = np.trace(rots, axis1=1, axis2=2)  # larger = smaller rotation angle
         best = int(np.argmax(np.where(near, closeness, -np.inf)))
         chosen_by = "up"

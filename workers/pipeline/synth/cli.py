@@ -1,7 +1,7 @@
 """``python -m workers.pipeline synth --scenario moved --out DIR [--seed 0] [--preset demo]
 [--ycb DIR --objects power_drill,mustard_bottle,...] [--views N] [--poses | --no-poses]
 [--room closed|one_wall|...] [--path ring|low_high|wide_high] [--real-camera]
-[--distractors column,unknown_box] [--target NAME]``."""
+[--distractors column,unknown_box] [--target NAME] [--lying NAME,...]``."""
 
 from __future__ import annotations
 
@@ -36,7 +36,8 @@ def _models(ycb: Path | None, objects: str | None) -> list[ObjectModel] | None:
 
 
 def _world(options: SynthOptions, args: argparse.Namespace) -> SynthOptions:
-    """``options`` with the room, path, effects, distractors and target of the arguments."""
+    """``options`` with the room, path, effects, distractors, target and lying objects of
+    the arguments."""
     if args.room is not None:
         options = replace(options, room=ROOM_PRESETS[args.room])
     if args.path is not None:
@@ -47,6 +48,9 @@ def _world(options: SynthOptions, args: argparse.Namespace) -> SynthOptions:
     if args.distractors:
         names = tuple(n.strip() for n in args.distractors.split(",") if n.strip())
         options = replace(options, distractors=names)
+    if args.lying:
+        lying = tuple(n.strip() for n in args.lying.split(",") if n.strip())
+        options = replace(options, lying=lying)
     return replace(options, target=args.target)
 
 
@@ -78,6 +82,10 @@ def cli(argv: list[str]) -> int:
     )
     parser.add_argument("--distractors", help=f"comma-separated, of {', '.join(DISTRACTORS)}")
     parser.add_argument("--target", help="the object the change acts on")
+    parser.add_argument(
+        "--lying",
+        help="comma-separated objects set down on a side or upside down, not on their base",
+    )
     args = parser.parse_args(argv)
     options = _world(preset(args.preset), args)
     if args.views is not None:

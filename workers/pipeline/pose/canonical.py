@@ -20,7 +20,6 @@ from workers.pipeline.model import PreparedModel
 from workers.pipeline.model.symmetry_group import SymmetrySpec
 from workers.pipeline.pose.fit import Target
 
-
 #: equivalents whose object up is tilted from the environment's up at most this much more
 #: than the least tilted one's count as standing the same way up (an angle, not a cosine:
 #: near the horizontal a cosine window of 0.02 is one degree, and a lying object's

@@ -157,6 +157,18 @@ TUNING: tuple[World, ...] = (
         target="power_drill",
         lying=("power_drill", "mug", "wood_block", "mustard_bottle", "hammer"),
     ),
+    # the same draw stands all four upside down: the mug the upright rule was made for,
+    # the cans (round, their ends differ) and the bottle; a can removed
+    World(
+        "upside_down_removed",
+        "removed",
+        ("mug", "master_chef_can", "tomato_soup_can", "mustard_bottle", "large_clamp"),
+        "two_walls",
+        "low_high",
+        9,
+        target="master_chef_can",
+        lying=("mug", "master_chef_can", "tomato_soup_can", "mustard_bottle"),
+    ),
 )
 
 TEST: tuple[World, ...] = (

@@ -35,6 +35,35 @@ def _same_way_up(ups: NDArray[np.float64]) -> NDArray[np.bool_]:
     return same
 
 
+#: turns about a round object's axis, degrees, over which its colour is tried per end
+SPIN_STEP_DEG = 10.0
+
+
+def _way_up_by_colour(
+    env_from_object: Mat4,
+    symmetry: SymmetrySpec,
+    colour: Callable[[Mat4], float],
+    margin: float,
+) -> int | None:
+    """Which of a round object's discrete elements (which end up: a can's label reads one
+    way) its colours hold: the index of the element whose best ``colour`` over turns about
+    the axis (every :data:`SPIN_STEP_DEG`) beats every other element's by ``margin``; None
+    when none does or colour is unknown."""
+    best = []
+    for element in symmetry.rotations:
+        scores = np.array(
+            [
+                colour(env_from_object @ symmetry.continuous_rotation(a) @ element)
+                for a in np.radians(np.arange(0.0, 360.0, SPIN_STEP_DEG))
+            ]
+        )
+        if not np.isfinite(scores).any():
+            return None
+        best.append(float(np.nanmax(scores)))
+    order = np.argsort(best)[::-1]
+    return int(order[0]) if best[order[0]] - best[order[1]] >= margin else None
+
+
 @dataclass(frozen=True)
 class CanonicalPose:
     """The published ``env_from_object``, why (``chosen_by``: "unique", "colour",
@@ -90,7 +119,9 @@ def _choose_equivalent(
     Order: ``colour`` (a discrete group whose colours break it: among the elements that
     stand the same way up as the least tilted (:func:`_same_way_up`) — never upside down;
     every side of a lying box — the one whose colour agreement beats the others by
-    ``colour_margin``), then ``previous``, then ``up``."""
+    ``colour_margin``; a round object with more than one discrete element: the end up
+    that :func:`_way_up_by_colour` names, the turn about the axis then as below), then
+    ``previous``, then ``up``."""
     if not symmetry.is_symmetric:
         return CanonicalPose(env_from_object, "unique", ())
     if colour is not None and symmetry.kind == "discrete" and symmetry.appearance_breaks:
@@ -105,10 +136,15 @@ def _choose_equivalent(
                 return CanonicalPose(
                     chosen, "colour", tuple(chosen @ s for s in symmetry.rotations[1:])
                 )
+    side = None
     if symmetry.kind == "continuous":
+        elements = symmetry.rotations
+        if colour is not None and symmetry.appearance_breaks and len(elements) > 1:
+            side = _way_up_by_colour(env_from_object, symmetry, colour, colour_margin)
+            elements = elements if side is None else (elements[side],)
         grid = [
             env_from_object @ symmetry.continuous_rotation(a) @ s
-            for s in symmetry.rotations
+            for s in elements
             for a in np.radians(np.arange(0.0, 360.0, 0.5))
         ]
     else:
@@ -123,6 +159,8 @@ def _choose_equivalent(
         closeness = np.trace(rots, axis1=1, axis2=2)  # larger = smaller rotation angle
         best = int(np.argmax(np.where(near, closeness, -np.inf)))
         chosen_by = "up"
+    if side is not None:
+        chosen_by = "colour"
     chosen = grid[best]
     samples = symmetry.sample(8) if symmetry.kind == "continuous" else list(symmetry.rotations)
     equivalents = [chosen @ s for s in samples if rotation_angle_deg(s[:3, :3]) > 1e-3]

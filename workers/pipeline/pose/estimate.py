@@ -76,12 +76,17 @@ def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) 
 def _unsettled(model: PreparedModel, chosen_by: str) -> tuple[str, ...]:
     """Why a pose cannot be verified although it fits: an object whose shape repeats under
     a discrete symmetry but whose appearance does not (a label, wood grain) is right only
-    as the equivalent colour chose; any other choice is a guess among equally good fits."""
+    as the equivalent colour chose, and so is which end of a round one (a can) is up; any
+    other choice is a guess among equally good fits."""
     symmetry = model.symmetry
-    if symmetry.kind != "discrete" or not symmetry.appearance_breaks or chosen_by == "colour":
+    if not symmetry.appearance_breaks or chosen_by == "colour":
         return ()
     n = len(symmetry.rotations)
-    return (f"colour does not settle which of its {n} symmetric equivalents it is",)
+    if symmetry.kind == "discrete":
+        return (f"colour does not settle which of its {n} symmetric equivalents it is",)
+    if symmetry.kind == "continuous" and n > 1:
+        return ("colour does not settle which end of it is up",)
+    return ()
 
 
 def estimate_pose(

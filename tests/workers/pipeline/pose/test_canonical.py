@@ -57,3 +57,26 @@ def test_an_upright_box_is_never_published_upside_down_for_its_colour() -> None:
     yawed = fitted @ BOX.rotations[3]  # half a turn about up: same way up, colour decides
     picked = _choose_equivalent(fitted, BOX, UP, UP, None, _colour_of(yawed), 0.02)
     assert picked.chosen_by == "colour" and np.allclose(picked.env_from_object, yawed)
+
+
+#: a can's shape group: any turn about its axis, and end over end; its label breaks it
+CAN = SymmetrySpec(
+    kind="continuous",
+    rotations=(np.eye(4), _turn((1.0, 0.0, 0.0), 180.0)),
+    axis=np.array([0.0, 0.0, 1.0]),
+    origin=np.zeros(3),
+    appearance_breaks=True,
+)
+
+
+def test_a_cans_colours_say_which_end_is_up() -> None:
+    fitted = _turn((0.0, 0.0, 1.0), 40.0)  # fitted upright; the label reads upside down
+
+    def upside_down_label(pose: Mat4) -> float:
+        return 0.4 if pose[:3, 2] @ UP < 0 else 0.1
+
+    picked = _choose_equivalent(fitted, CAN, UP, UP, None, upside_down_label, 0.02)
+    assert picked.chosen_by == "colour" and picked.env_from_object[:3, 2] @ UP < -0.99
+    # colours that do not tell the ends apart leave it upright, chosen by "up" (a guess)
+    picked = _choose_equivalent(fitted, CAN, UP, UP, None, lambda pose: 0.3, 0.02)
+    assert picked.chosen_by == "up" and picked.env_from_object[:3, 2] @ UP > 0.99

@@ -1,10 +1,12 @@
 """Step 5 of pose estimation: one canonical pose among a symmetric object's equivalents.
 
 Among the equivalent poses ``env_from_object @ S`` one is published: the one whose model
-colours match the scene's clearly best when colour breaks a discrete symmetry (a label),
-else the one closest to a previous pose if given, else the one whose object up axis agrees
-best with the environment up, ties broken by the smallest rotation, so a symmetric object
-is never published upside down because the fit is equally good.
+colours match the scene's clearly best when colour breaks a discrete symmetry (a label;
+among those standing the same way up), or, for a round object that flips end over end (a
+can), on the end its colours hold; else the one closest to a previous pose if given, else
+the one whose object up axis agrees best with the environment up, ties broken by the
+smallest rotation, so a symmetric object is never published upside down only because the
+fit is equally good.
 """
 
 from __future__ import annotations

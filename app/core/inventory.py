@@ -204,14 +204,26 @@ def _note(
         instance.pose, instance.pose_quality = obj.pose, obj.pose_quality
     instance.centroid_env = obj.centroid_env
     instance.since_snapshot_id = snapshot_id
+    _record(session, instance.id, snapshot_id, comparison_id, kind, obj.pose, obj.centroid_env)
+
+
+def _record(
+    session: Session,
+    instance_id: str,
+    snapshot_id: str,
+    comparison_id: str | None,
+    kind: str,
+    pose: Any,
+    centroid_env: Any,
+) -> None:
     session.add(
         InstancePose(
-            instance_id=instance.id,
+            instance_id=instance_id,
             snapshot_id=snapshot_id,
             comparison_id=comparison_id,
             change_type=kind,
-            pose=obj.pose,
-            centroid_env=obj.centroid_env,
+            pose=pose,
+            centroid_env=centroid_env,
         )
     )
 
@@ -358,17 +370,9 @@ def _restore(
     instance.closed_snapshot_id, instance.closed_at = None, None
     if _refreshes(instance, obj, head_id):
         _note(session, instance, head_id, comparison_id, TwinEdit.restored, obj)
-        return
-    session.add(
-        InstancePose(
-            instance_id=instance.id,
-            snapshot_id=head_id,
-            comparison_id=comparison_id,
-            change_type=TwinEdit.restored,
-            pose=instance.pose,
-            centroid_env=instance.centroid_env,
-        )
-    )
+    else:
+        kind, pose, centre = TwinEdit.restored, instance.pose, instance.centroid_env
+        _record(session, instance.id, head_id, comparison_id, kind, pose, centre)
 
 
 def confirm(

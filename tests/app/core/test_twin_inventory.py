@@ -102,6 +102,16 @@ def succeed_comparison(
     twin.advance(session, env.id)
 
 
+def seed_bowl(session: Session, env: Environment, x: float, external_id: str) -> TwinInstance:
+    """An open bowl instance at ``x`` the twin platform gave (``external_id``)."""
+    seeded = TwinInstance(
+        environment_id=env.id, object_name="bowl", pose=pose_at(x), external_id=external_id
+    )
+    session.add(seeded)
+    session.flush()
+    return seeded
+
+
 def x_of(instance: TwinInstance) -> float:
     assert instance.pose is not None
     return instance.pose[0][3]
@@ -121,11 +131,7 @@ def history(session: Session, instance_id: str) -> list[str]:
 def test_first_snapshot_fills_the_twin_and_later_ones_confirm_it(
     session: Session, env: Environment
 ) -> None:
-    seeded = TwinInstance(
-        environment_id=env.id, object_name="bowl", pose=pose_at(0.52), external_id="erp:1"
-    )
-    session.add(seeded)
-    session.flush()
+    seeded = seed_bowl(session, env, 0.52, "erp:1")
     session.add(InstancePose(instance_id=seeded.id, change_type=TwinEdit.seeded, pose=seeded.pose))
     first = snapshot(session, env, 1)
     reconstructed(
@@ -220,11 +226,7 @@ def test_an_unverified_twin_pose_gives_way_to_a_newer_estimate_a_verified_one_do
 def test_a_removal_its_own_inventory_contradicts_reopens_the_instance(
     session: Session, env: Environment
 ) -> None:
-    seeded = TwinInstance(
-        environment_id=env.id, object_name="bowl", pose=pose_at(0.5), external_id="erp:7"
-    )
-    session.add(seeded)
-    session.flush()
+    seeded = seed_bowl(session, env, 0.5, "erp:7")
     first = snapshot(session, env, 1)
     reconstructed(session, first, [found("bowl", pose_at(0.5)), found("drill", pose_at(0.1))])
     by_name = {i.object_name: i for i in twin.current(session, env.id)}

@@ -23,9 +23,8 @@ from workers.pipeline.model.symmetry_group import SymmetrySpec
 from workers.pipeline.pose.fit import Target
 
 #: equivalents whose object up is tilted from the environment's up at most this much more
-#: than the least tilted one's count as standing the same way up (an angle, not a cosine:
-#: near the horizontal a cosine window of 0.02 is one degree, and a lying object's
-#: equivalents, all horizontal, fall on either side of it by the fit's noise)
+#: than the least tilted one's count as standing the same way up (an angle: a window in
+#: cosines would be narrow at the horizontal, where a lying object's equivalents all are)
 UP_WINDOW_DEG = 11.5
 
 

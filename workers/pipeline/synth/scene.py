@@ -19,10 +19,17 @@ import numpy as np
 from scipy.spatial import ConvexHull, QhullError
 
 from workers.pipeline.errors import InputError
-from workers.pipeline.geometry import Mat4, make_rigid
+from workers.pipeline.geometry import Mat4, make_rigid, perpendicular_pair, rotation_from_rotvec
 from workers.pipeline.synth.markers import MarkerSheet, marker_sheet, rot_z
 from workers.pipeline.synth.options import LAYOUTS, SCENARIOS, RoomOptions, SynthOptions
-from workers.pipeline.synth.shapes import Mesh, ObjectModel, box, distractor_model, merge
+from workers.pipeline.synth.shapes import (
+    Mesh,
+    ObjectModel,
+    box,
+    distractor_model,
+    footprint_circle,
+    merge,
+)
 from workers.pipeline.synth.texture import SolidTexture
 
 
@@ -192,12 +199,21 @@ def room_surfaces(room: RoomOptions) -> tuple[StaticSurface, ...]:
     return tuple(out)
 
 
-def _rest_pose(model: ObjectModel, xy: np.ndarray, yaw_rad: float, support_z: float) -> Mat4:
-    """``env_from_object`` standing the model on z = ``support_z``, turned by yaw about z,
-    with its footprint centre at ``xy``."""
-    rot = rot_z(yaw_rad)
-    origin_xy = xy - rot[:2, :2] @ model.footprint[0]
-    z = support_z - float(model.mesh.vertices[:, 2].min())
+def _rest_pose(
+    model: ObjectModel,
+    xy: np.ndarray,
+    yaw_rad: float,
+    support_z: float,
+    lying: tuple[np.ndarray, np.ndarray, float] | None = None,
+) -> Mat4:
+    """``env_from_object`` standing the model on z = ``support_z`` (set down by the tilt of
+    :meth:`_Placer._set_down`'s ``lying`` when given), turned by yaw about z, with its
+    footprint centre at ``xy``."""
+    tilt, centre = (np.eye(3), model.footprint[0]) if lying is None else lying[:2]
+    turn = rot_z(yaw_rad)
+    rot = turn @ tilt
+    origin_xy = xy - turn[:2, :2] @ centre
+    z = support_z - float((model.mesh.vertices @ rot.T)[:, 2].min())
     return make_rigid(rot, [float(origin_xy[0]), float(origin_xy[1]), z])
 
 
@@ -228,7 +244,7 @@ def resting_faces(vertices: np.ndarray) -> list[np.ndarray]:
         if n[2] < -np.cos(np.radians(10.0)):
             continue
         corners = vertices[np.unique(hull.simplices[group])]
-        axes = np.linalg.svd(np.cross(n, np.eye(3)))[2][:2]  # two axes across n
+        axes = np.stack(perpendicular_pair(n))
         flat, foot = corners @ axes.T, centre @ axes.T
         if len(flat) < 3:
             continue
@@ -248,10 +264,7 @@ def _turn_down(normal: np.ndarray) -> np.ndarray:
     s, c = float(np.linalg.norm(axis)), float(normal @ down)
     if s < 1e-9:
         return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    k = axis / s
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    rot: np.ndarray = np.eye(3) + s * cross + (1.0 - c) * cross @ cross
-    return rot
+    return rotation_from_rotvec(axis / s * np.arctan2(s, c))
 
 
 class _Placer:
@@ -281,9 +294,8 @@ class _Placer:
         if not faces:
             raise InputError(f"{model.name} has no face to lie on but its base")
         tilt = _turn_down(faces[int(self.rng.integers(len(faces)))])
-        xy = (np.asarray(model.mesh.vertices, dtype=np.float64) @ tilt.T)[:, :2]
-        centre = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
-        return tilt, centre, float(np.linalg.norm(xy - centre, axis=1).max())
+        centre, radius = footprint_circle((model.mesh.vertices @ tilt.T)[:, :2])
+        return tilt, centre, radius
 
     def _free(self, r: float, xy: np.ndarray, support: str, others: Sequence[Placement]) -> bool:
         for other in others:
@@ -351,15 +363,9 @@ class _Placer:
                 continue
             support_z = self.supports[support].z_m
             yaw = self.rng.uniform(-np.pi, np.pi)
-            if lying is None:
-                pose = _rest_pose(model, xy, yaw, support_z)
-                return Placement(instance_id, model, pose, support)
-            tilt, centre, _ = lying
-            rot = rot_z(yaw) @ tilt
-            origin_xy = xy - rot_z(yaw)[:2, :2] @ centre
-            z = support_z - float((np.asarray(model.mesh.vertices) @ rot.T)[:, 2].min())
-            pose = make_rigid(rot, [float(origin_xy[0]), float(origin_xy[1]), z])
-            return Placement(instance_id, model, pose, support, (xy, footprint_r))
+            pose = _rest_pose(model, xy, yaw, support_z, lying)
+            footprint = None if lying is None else (xy, footprint_r)
+            return Placement(instance_id, model, pose, support, footprint)
         raise _NoRoom(f"no free place for {model.name}")
 
 

@@ -213,14 +213,19 @@ class ObjectModel:
     @cached_property
     def footprint(self) -> tuple[F64, float]:
         """(centre (2,), radius) in metres of a circle in the object's xy plane holding the
-        whole model seen from above (centre of the xy bounding box)."""
-        xy = self.mesh.vertices[:, :2]
-        centre: F64 = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
-        return centre, float(np.linalg.norm(xy - centre, axis=1).max())
+        whole model seen from above (:func:`footprint_circle` of its vertices)."""
+        return footprint_circle(self.mesh.vertices[:, :2])
 
     def footprint_radius_m(self) -> float:
         """Radius of :attr:`footprint`."""
         return self.footprint[1]
+
+
+def footprint_circle(xy: NDArray[np.floating[Any]]) -> tuple[F64, float]:
+    """(centre (2,), radius) in metres of a circle holding the (N, 2) points ``xy``: the
+    centre of their bounding box, the radius to the farthest."""
+    centre: F64 = (xy.min(axis=0) + xy.max(axis=0)) / 2.0
+    return centre, float(np.linalg.norm(xy - centre, axis=1).max())
 
 
 def _sample_image(image: NDArray[np.uint8], st: F32) -> F32:

@@ -1207,3 +1207,39 @@ def test_a_pose_tipping_on_its_support_is_set_down_and_beyond_the_window_unverif
         off = replace(POSE_PRESETS["default"], max_set_down_tilt_deg=10.0)
         kept = estimate_pose(model, scene, cluster_points_env=obj, options=off)
         assert pose_error(kept.env_from_object, true)[1] == pytest.approx(tilt_deg, abs=2.0)
+
+
+def test_a_small_objects_fitness_follows_the_scans_spacing(
+    shared_data: Path, tmp_path: Path
+) -> None:
+    """A Rubik's cube (half a voxel: 1.9 mm) seen by one camera, its scan scattered 2 mm
+    and thinned to a 2.5 mm spacing, as a far camera path leaves it: at its true pose half a
+    voxel finds a scan point for fewer than ``min_fitness`` of its points, 1.5 spacings for
+    as many as on the dense scan (a fitness that measured the scan, not the pose)."""
+    from workers.pipeline.pose.candidates import FitContext
+    from workers.pipeline.pose.crop import crop_scene
+
+    mesh = shared_data / "ycb" / "rubiks_cube" / "textured.obj"
+    model = prepare_model(mesh, tmp_path / "cube")
+    true = upright(20.0, (0.0, 0.0, 0.0))
+    true[2, 3] -= transform_points(true, model.points)[:, 2].min()
+    scan, _ = partial_view(mesh, true, 3, camera_dirs=[np.array([1.0, 0.2, 1.0])])
+    inputs = check_inputs(transform_points(true, model.points)[::10], None, None, UP)
+    rng = np.random.default_rng(5)
+
+    def fitness(voxel_m: float, inlier_spacings: float) -> tuple[float, float]:
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(scan.points))
+        cloud.normals = o3d.utility.Vector3dVector(scan.normals)
+        thin = cloud.voxel_down_sample(voxel_m)
+        points = np.asarray(thin.points) + rng.normal(0.0, 0.002, (len(thin.points), 3))
+        scene = SceneCloud.create(points, np.asarray(thin.normals))
+        options = replace(POSE_PRESETS["default"], inlier_spacings=inlier_spacings)
+        region = crop_scene(model, scene, inputs, options)
+        refiner = Refiner.create(FitContext(model, region, (), options, inputs.up))
+        return refiner.evaluate(true)[0], region.spacing_m
+
+    dense, dense_spacing = fitness(0.001, 1.5)
+    sparse, sparse_spacing = fitness(0.004, 1.5)
+    voxels_only, _ = fitness(0.004, 0.0)
+    assert dense_spacing < 0.0015 and 0.002 < sparse_spacing < 0.003
+    assert voxels_only < POSE_PRESETS["default"].min_fitness < 0.9 * dense <= sparse

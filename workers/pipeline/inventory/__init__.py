@@ -13,7 +13,6 @@ from workers.pipeline.inventory.options import (
 from workers.pipeline.inventory.stage import (
     InventoryObject,
     InventoryResult,
-    median_spacing_m,
     take_inventory,
 )
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
@@ -26,7 +25,6 @@ __all__ = [
     "Support",
     "find_supports",
     "inventory_options_from_json",
-    "median_spacing_m",
     "standing_heights",
     "take_inventory",
 ]

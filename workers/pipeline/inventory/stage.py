@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from workers.pipeline.compare.clusters import dbscan, groups_from_labels
 from workers.pipeline.compare.data import CaptureData
@@ -37,6 +36,7 @@ from workers.pipeline.inventory.options import INVENTORY_PRESETS, InventoryOptio
 from workers.pipeline.inventory.supports import Support, find_supports, standing_heights
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.crop import SceneCloud
+from workers.pipeline.pose.fit import median_spacing_m
 from workers.pipeline.pose.options import PoseOptions
 from workers.pipeline.pose.photo_edges import CaptureSight
 from workers.pipeline.pose.posing import pose_change
@@ -102,18 +102,6 @@ class InventoryResult:
             "supports": [s.to_json() for s in self.supports],
             "stats": dict(self.stats),
         }
-
-
-def median_spacing_m(points_env: FloatArray, sample: int, seed: int) -> float:
-    """Median nearest-neighbour distance of (N ≥ 2, 3) points, metres, over a seeded
-    sample of at most ``sample`` of them."""
-    rng = np.random.default_rng(seed)
-    pick = points_env
-    if len(points_env) > sample:
-        pick = points_env[rng.choice(len(points_env), sample, replace=False)]
-    # unbalanced: built in half the time; a nearest distance does not depend on the tree
-    d, _ = cKDTree(points_env, balanced_tree=False, compact_nodes=False).query(pick, k=2)
-    return float(np.median(d[:, 1]))
 
 
 def _check(classes: Sequence[str], class_diameters_m: Mapping[str, float]) -> None:

@@ -20,8 +20,11 @@ from scipy.spatial import cKDTree
 from workers.pipeline.errors import InputError, RegistrationError, ShapeError
 from workers.pipeline.geometry import Mat4, Points, as_mat4, as_points
 from workers.pipeline.model import PreparedModel, fpfh_features, make_cloud
-from workers.pipeline.pose.fit import Target, normalised
+from workers.pipeline.pose.fit import Target, median_spacing_m, normalised
 from workers.pipeline.pose.options import PoseOptions
+
+#: points sampled for the scan's spacing about the object (its median is stable at this size)
+SPACING_SAMPLE = 5000
 
 
 @dataclass(frozen=True)
@@ -92,7 +95,9 @@ class SceneRegion:
     cloud and its ICP ``target_fine``; ``down``: ``fine`` downsampled at the model voxel with
     its ``fpfh`` (M, 33) and ``target_down``; ``support``: the plane (4,) ``[n, d]`` the
     object stands on or None, ``band_m`` its band, ``on_support`` (S, 3) scene points on
-    it; ``support_removed``: how many points its removal took out."""
+    it; ``support_removed``: how many points its removal took out; ``spacing_m``: the
+    median nearest-neighbour distance of the points within ``radius_m`` (the scan's density
+    about the object, metres)."""
 
     n_points: int
     radius_m: float
@@ -105,6 +110,7 @@ class SceneRegion:
     band_m: float
     on_support: Points
     support_removed: int
+    spacing_m: float
 
 
 @dataclass(frozen=True)
@@ -339,4 +345,5 @@ def crop_scene(
         band_m=band,
         on_support=support.on_support,
         support_removed=n_full - len(fine.points),
+        spacing_m=median_spacing_m(crop.points, SPACING_SAMPLE, options.seed),
     )

@@ -222,6 +222,18 @@ def fitness_and_rmse(tree: cKDTree, points: Points, max_distance_m: float) -> tu
     return inlier_figures(d)
 
 
+def median_spacing_m(points: Points, sample: int, seed: int) -> float:
+    """Median nearest-neighbour distance of (N ≥ 2, 3) points, metres, over a seeded
+    sample of at most ``sample`` of them."""
+    rng = np.random.default_rng(seed)
+    pick = points
+    if len(points) > sample:
+        pick = points[rng.choice(len(points), sample, replace=False)]
+    # unbalanced: built in half the time; a nearest distance does not depend on the tree
+    d, _ = cKDTree(points, balanced_tree=False, compact_nodes=False).query(pick, k=2)
+    return float(np.median(d[:, 1]))
+
+
 def inlier_figures(distances: NDArray[np.float64]) -> tuple[float, float]:
     """(share of the (N,) distances that are finite, their RMS in metres; 0 when none): the
     fitness and inlier RMSE of points whose distances beyond the inlier distance are inf."""

@@ -60,6 +60,9 @@ class PoseOptions:
     final_max_iterations: int = 30
     # inlier distance of ``fitness``, voxels (capped by ``max_inlier_distance_m``)
     inlier_voxels: float = 0.5
+    # least inlier distance of ``fitness``, in the scan's median point spacings about the
+    # object: a small object's half voxel is finer than the scan; 0 = voxels alone
+    inlier_spacings: float = 1.5
     # cap on every inlier distance, metres: the scan's noise, not the object's size
     max_inlier_distance_m: float = 0.01
     # least share of model points near the scene for ``verified``; one view sees 30-60 %
@@ -125,7 +128,7 @@ class PoseOptions:
     threads: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("photo_edges_max_views", "threads"):
+        for name in ("inlier_spacings", "photo_edges_max_views", "threads"):
             if getattr(self, name) < 0:
                 raise InputError(f"pose option {name} must be ≥ 0")
 

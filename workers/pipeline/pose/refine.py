@@ -329,10 +329,15 @@ class Refiner:
 
     @property
     def inlier_distance_m(self) -> float:
-        """The inlier distance of ``fitness``: ``inlier_voxels``, at most
-        ``max_inlier_distance_m``, metres."""
+        """The inlier distance of ``fitness``, metres: ``inlier_voxels`` or
+        ``inlier_spacings`` × the scan's spacing, the larger, at most
+        ``max_inlier_distance_m``."""
         o = self.ctx.options
-        return min(o.inlier_voxels * self.ctx.model.voxel_m, o.max_inlier_distance_m)
+        reach = max(
+            o.inlier_voxels * self.ctx.model.voxel_m,
+            o.inlier_spacings * self.ctx.region.spacing_m,
+        )
+        return min(reach, o.max_inlier_distance_m)
 
     def evaluate(self, env_from_object: Mat4) -> tuple[float, float]:
         """(fitness, inlier RMSE in metres) of ``env_from_object``: the share of every model

@@ -105,7 +105,7 @@ class PoseOptions:
     photo_edges_max_views: int = 12
     # the photos' fit turning the pose by at most this, degrees, confirms the pose step's
     # last fit where it and the ICP disagree (max_final_turn_deg); lower confirms fewer
-    photo_edges_confirm_deg: float = 1.0
+    photo_edges_confirm_deg: float = 2.0
     # largest rotation the scan's residual level may hide, degrees, for ``verified``
     # (rotation_slack_deg; only with final_fit "scene_to_model"); lower verifies fewer
     max_rotation_slack_deg: float = 20.0

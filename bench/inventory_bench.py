@@ -13,12 +13,11 @@ is scored against the capture's true placements:
 - **false objects**: objects no true library object of their class explains (distractors
   named as library objects count here);
 - **poses**: symmetry-aware errors (:func:`workers.demo.evaluate.errors`), all and verified;
-- **twin**: the service's rules run on the world's two snapshots (baseline from the first
-  inventory; the comparison's changes posed as the comparison job does; the second
-  inventory confirms, refreshes where :func:`app.core.inventory.refreshes` lets it,
-  reopens what the comparison removed but it shows, adds posed objects nothing accounts
-  for) against the after
-  capture's truth: every object with class and pose within 1 cm / 3°, nothing extra;
+- **twin**: the service's own twin code (:mod:`app.core.twin`, :mod:`app.core.inventory`)
+  on a scratch SQLite database: the first inventory fills the twin, the comparison's changes
+  (posed as the comparison job does) are applied, the second inventory confirms; the open
+  instances are scored against the after capture's truth: every object with class and pose
+  within 1 cm / 3°, nothing extra;
 - **time**: the inventory's wall and CPU seconds per capture beside the compare stage's on
   the same pair in the same run (the baseline), on this machine's cores.
 
@@ -32,6 +31,7 @@ import json
 import os
 import statistics
 import sys
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -41,7 +41,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.core.inventory import match_reach_m, refreshes
+from sqlalchemy.orm import Session
+
+from app.core import inventory, twin
+from app.core.db import Base, make_engine
+from app.core.enums import ObjectState
+from app.core.models import Comparison, Environment, Job, LibraryObject, Snapshot
 from bench.scenarios_bench import (
     ROOT,
     TMP,
@@ -56,8 +61,9 @@ from bench.scenarios_bench import (
     ycb_dir,
 )
 from bench.worlds import SETS, World
+from workers.comparison import compare_twin
 from workers.demo.evaluate import _symmetry, errors
-from workers.pipeline.compare.data import CaptureData, TwinInstance
+from workers.pipeline.compare.data import CaptureData
 from workers.pipeline.compare.options import options_from_json
 from workers.pipeline.compare.stage import compare_snapshots
 from workers.pipeline.inventory import InventoryResult, inventory_options_from_json, take_inventory
@@ -214,105 +220,70 @@ def score_capture(
     }
 
 
-def _twin_from(result: InventoryResult) -> list[dict[str, Any]]:
-    return [
-        {
-            "id": f"inv-{i}",
-            "object": o.object_name,
-            "pose": o.env_from_object.tolist(),
-            "quality": o.pose_quality,
-        }
-        for i, o in enumerate(result.objects)
-        if o.env_from_object is not None
-    ]
-
-
-def _refreshes(
-    twin: dict[str, Any], found: dict[str, Any], model: PreparedModel, just_posed: bool
-) -> bool:
-    return refreshes(
-        twin["pose"],
-        twin["quality"],
-        centre_of(twin["pose"], model)[:3],
-        found["pose"],
-        found["pose_quality"],
-        centre_of(found["pose"], model)[:3],
-        just_posed,
-    )
-
-
-def _confirm(
-    current: list[dict[str, Any]],
-    removed: list[dict[str, Any]],
-    touched: set[str],
-    found: list[dict[str, Any]],
+def _service_twin(
+    classes: list[str],
+    before: CaptureData,
+    after: CaptureData,
+    inv_before: InventoryResult,
+    inv_after: InventoryResult,
     models: dict[str, PreparedModel],
-) -> tuple[list[dict[str, Any]], dict[str, int]]:
-    """The second inventory on the twin as the comparison left it
-    (:func:`app.core.inventory.confirm`'s rules): the twin's entries after, and how many
-    were refreshed, restored (removed by the comparison, shown by the inventory) and added."""
-    reach = {n: match_reach_m(m.diameter_m) for n, m in models.items()}
-
-    def as_truth(entries: list[dict[str, Any]]) -> list[dict[str, Any]]:
-        return [{"object": t["object"], "env_from_object": t["pose"]} for t in entries]
-
-    pairs = _pairs(as_truth(current), found, reach, models)
-    drifted = 0
-    for i, j in pairs:
-        model = models[found[j]["object"]]
-        if _refreshes(current[i], found[j], model, current[i]["id"] in touched):
-            current[i]["pose"], current[i]["quality"] = found[j]["pose"], found[j]["pose_quality"]
-            drifted += 1
-    paired = {j for _, j in pairs}
-    left = [j for j in range(len(found)) if j not in paired]
-    restores = _pairs(as_truth(removed), [found[j] for j in left], reach, models)
-    for i, k in restores:
-        entry, f = removed[i], found[left[k]]
-        if _refreshes(entry, f, models[f["object"]], False):
-            entry["pose"], entry["quality"] = f["pose"], f["pose_quality"]
-        current.append(entry)
-        paired.add(left[k])
-    added = [
-        {"id": f"inv2-{j}", "object": f["object"], "pose": f["pose"]}
-        for j, f in enumerate(found)
-        if j not in paired
-    ]
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]], dict[str, int], float]:
+    """The service's own twin code (:mod:`app.core.twin`, :mod:`app.core.inventory`) on a
+    scratch SQLite database: the first inventory fills the twin, the comparison's posed
+    changes are applied, the second inventory confirms. Returns the twin's open instances
+    after (object, pose, centroid), the comparison's changes, the confirmation's counts
+    and the compare-and-pose seconds."""
+    with tempfile.TemporaryDirectory() as scratch:
+        engine = make_engine(f"sqlite:///{scratch}/twin.db")
+        Base.metadata.create_all(engine)
+        with Session(engine) as session:
+            env = Environment(name="bench", classes=classes)
+            library = [
+                LibraryObject(
+                    name=name,
+                    state=ObjectState.ready,
+                    diameter_m=model.diameter_m,
+                    filename=f"{name}.ply",
+                    file_key=name,
+                    size_bytes=0,
+                )
+                for name, model in models.items()
+            ]
+            session.add_all([env, *library])
+            session.flush()
+            snaps = [Snapshot(environment_id=env.id, seq=seq, storage_prefix="") for seq in (1, 2)]
+            job = Job(kind="comparison", task_name="bench")
+            session.add_all([*snaps, job])
+            session.flush()
+            comparison = Comparison(
+                environment_id=env.id, before_id=snaps[0].id, after_id=snaps[1].id, job_id=job.id
+            )
+            session.add(comparison)
+            session.flush()
+            inventory.record(session, snaps[0], [o.to_json() for o in inv_before.objects], {})
+            inventory.fill_baseline(session, env, snaps[0])
+            instances = compare_twin(twin.state_at(session, env.id, 1))
+            t0 = time.perf_counter()
+            options = options_from_json("default")
+            diameters = {n: m.diameter_m for n, m in models.items()}
+            result = compare_snapshots(before, after, instances, classes, diameters, options)
+            records = pose_changes(result, after, classes, models, models.__getitem__, options)
+            compare_s = time.perf_counter() - t0
+            object_ids = {o.name: o.id for o in library}
+            twin.apply_changes(session, env.id, snaps[1].id, comparison.id, records, object_ids)
+            inventory.record(session, snaps[1], [o.to_json() for o in inv_after.objects], {})
+            confirmed = inventory.confirm(session, env, snaps[1], comparison.id)
+            current = [
+                {"object": i.object_name, "pose": i.pose, "centroid_env": i.centroid_env}
+                for i in twin.current(session, env.id)
+            ]
+        engine.dispose()
     counts = {
-        "drift_refreshed": drifted,
-        "restored": len(restores),
-        "added_by_inventory": len(added),
+        "drift_refreshed": len(confirmed["drifted"]),
+        "restored": len(confirmed["restored"]),
+        "added_by_inventory": len(confirmed["added"]),
     }
-    return current + added, counts
-
-
-def _apply(
-    records: list[dict[str, Any]], twin: list[dict[str, Any]]
-) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]], set[str]]:
-    """A comparison's posed changes on the twin's entries (app.core.twin.apply_changes):
-    the entries after by id, those removed by id, and the ids the changes posed."""
-    by_id = {t["id"]: t for t in twin}
-    removed: dict[str, dict[str, Any]] = {}
-    touched: set[str] = set()
-    for r in records:
-        kind = r["type"]
-        posed = {"object": r["object"], "pose": r.get("pose"), "quality": r.get("pose_quality")}
-        if kind == "added" and r.get("pose") is not None:
-            by_id[r["id"]] = {"id": r["id"], **posed}
-            touched.add(r["id"])
-        elif kind == "removed":
-            gone = by_id.pop(str(r.get("instance_id")), None)
-            if gone is not None:
-                removed[gone["id"]] = gone
-        elif kind == "moved" and r.get("pose") is not None:
-            iid = str(r.get("instance_id"))
-            by_id[iid] = {"id": iid, **posed}
-            touched.add(iid)
-        elif kind == "swapped":
-            by_id.pop(str(r.get("replaced_instance_id")), None)
-            if r.get("pose") is not None:
-                by_id[r["id"]] = {"id": r["id"], **posed}
-                touched.add(r["id"])
-    return by_id, removed, touched
+    return current, records, counts, compare_s
 
 
 def twin_check(
@@ -326,32 +297,13 @@ def twin_check(
     """The service's twin rules on the world's two snapshots (see the module docstring),
     scored against the after capture's truth."""
     classes = truth["classes"]
-    twin = _twin_from(inv_before)
-    diameters = {n: m.diameter_m for n, m in models.items()}
-    instances = [
-        TwinInstance(
-            t["id"],
-            t["object"],
-            np.asarray(t["pose"]),
-            (np.asarray(t["pose"]) @ np.append(models[t["object"]].centre_object, 1))[:3],
-        )
-        for t in twin
-    ]
-    t0 = time.perf_counter()
-    options = options_from_json("default")
-    result = compare_snapshots(before, after, instances, classes, diameters, options)
-    records = pose_changes(result, after, classes, models, models.__getitem__, options)
-    compare_s = time.perf_counter() - t0
-    by_id, removed, touched = _apply(records, twin)
-    found = [o.to_json() for o in inv_after.objects if o.env_from_object is not None]
-    current, confirmed = _confirm(
-        list(by_id.values()), list(removed.values()), touched, found, models
+    current, records, confirmed, compare_s = _service_twin(
+        classes, before, after, inv_before, inv_after, models
     )
     # against the truth of the after capture
     placements = [p for p in truth["after"] if not p.get("distractor")]
     match_reach = {n: max(0.5 * m.diameter_m, 0.05) for n, m in models.items()}
-    as_found = [{"object": t["object"], "pose": t["pose"], "centroid_env": None} for t in current]
-    tp = dict(_pairs(placements, as_found, match_reach, models))
+    tp = dict(_pairs(placements, current, match_reach, models))
     rows = []
     for i, p in enumerate(placements):
         row: dict[str, Any] = {
@@ -359,8 +311,11 @@ def twin_check(
             "views_boxed": views_boxed(after, classes, p),
             "in_twin": i in tp,
         }
+        pose = current[tp[i]]["pose"] if i in tp else None
         if i in tp:
-            e = errors(current[tp[i]]["pose"], p["env_from_object"], _symmetry(truth, p["object"]))
+            row["within_pose_target"] = False  # an instance without a pose
+        if pose is not None:
+            e = errors(pose, p["env_from_object"], _symmetry(truth, p["object"]))
             row["translation_error_m"] = e.translation_m
             row["rotation_error_deg"] = e.rotation_deg
             row["within_pose_target"] = e.translation_m <= 0.01 and e.rotation_deg <= 3.0

@@ -7,6 +7,7 @@ update (app.core.twin.advance, in seq order) in one transaction."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +30,8 @@ from app.core import (
 )
 from app.core.db import transaction
 from app.core.enums import ComparisonState, EventType, ObjectState
-from app.core.models import Change, SnapshotImage, utcnow
+from app.core.models import Change, InstancePose, SnapshotImage, utcnow
+from app.core.models import TwinInstance as Instance
 from app.core.storage import Storage
 from workers.pipeline.compare.data import CaptureData, TwinInstance
 from workers.pipeline.compare.files import cameras_from_file, read_cameras_file
@@ -123,24 +125,31 @@ def _load(ctx: JobContext) -> ComparisonInputs:
             after=_capture(session, comparison.after_id),
             classes=list(env.classes),
             options=dict(comparison.options),
-            twin=[
-                TwinInstance(
-                    instance_id=instance.id,
-                    object_name=instance.object_name,
-                    env_from_object=np.asarray(
-                        record.pose if record.pose is not None else _at(record.centroid_env)
-                    ),
-                    centroid_env=(np.asarray(record.centroid_env) if record.centroid_env else None),
-                )
-                for instance, record in state
-                if record.pose is not None or record.centroid_env is not None
-            ],
+            twin=compare_twin(state),
             models={
                 name: (obj.id, float(obj.diameter_m), obj.artifacts_key)
                 for name, obj in library.items()
                 if obj.state == ObjectState.ready and obj.diameter_m and obj.artifacts_key
             },
         )
+
+
+def compare_twin(state: Sequence[tuple[Instance, InstancePose]]) -> list[TwinInstance]:
+    """The twin as the compare stage takes it (``state``: :func:`app.core.twin.state_at`):
+    each instance at its latest pose, or at its centroid where it has none; an instance with
+    neither is left out."""
+    return [
+        TwinInstance(
+            instance_id=instance.id,
+            object_name=instance.object_name,
+            env_from_object=np.asarray(
+                record.pose if record.pose is not None else _at(record.centroid_env)
+            ),
+            centroid_env=(np.asarray(record.centroid_env) if record.centroid_env else None),
+        )
+        for instance, record in state
+        if record.pose is not None or record.centroid_env is not None
+    ]
 
 
 def _at(centroid: list[float] | None) -> list[list[float]]:

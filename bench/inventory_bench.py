@@ -312,13 +312,13 @@ def twin_check(
             "in_twin": i in tp,
         }
         pose = current[tp[i]]["pose"] if i in tp else None
-        if i in tp:
-            row["within_pose_target"] = False  # an instance without a pose
         if pose is not None:
             e = errors(pose, p["env_from_object"], _symmetry(truth, p["object"]))
             row["translation_error_m"] = e.translation_m
             row["rotation_error_deg"] = e.rotation_deg
             row["within_pose_target"] = e.translation_m <= 0.01 and e.rotation_deg <= 3.0
+        elif i in tp:
+            row["within_pose_target"] = False  # an instance without a pose
         rows.append(row)
     extra = [t["object"] for j, t in enumerate(current) if j not in set(tp.values())]
     visible = [r for r in rows if r["views_boxed"] >= MIN_VIEWS]

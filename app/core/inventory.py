@@ -321,43 +321,23 @@ def _verified(quality: Mapping[str, Any] | None) -> bool:
     return bool((quality or {}).get("verified"))
 
 
-def refreshes(
-    twin_pose: Any,
-    twin_quality: Mapping[str, Any] | None,
-    twin_centre: Any,
-    found_pose: Any,
-    found_quality: Mapping[str, Any] | None,
-    found_centre: Any,
-    just_posed: bool,
-) -> bool:
-    """Whether an inventory's pose replaces an instance's (see the module docstring):
-    :func:`takes_inventory_pose` and :func:`moved_beyond_noise`; an instance the comparison
-    of the same snapshot ``just_posed`` gives way to a verified pose only, and only when its
-    own is unverified: both were estimated from the same capture."""
-    if found_pose is None:
-        return False
-    if just_posed:
-        may = _verified(found_quality) and not _verified(twin_quality)
-    else:
-        may = takes_inventory_pose(twin_pose, twin_quality, found_quality)
-    return may and moved_beyond_noise(
-        twin_pose,
-        found_pose,
-        twin_centre,
-        found_centre,
-        bool((found_quality or {}).get("ambiguous")),
-    )
-
-
 def _refreshes(instance: TwinInstance, obj: SnapshotObject, head_id: str) -> bool:
-    return refreshes(
+    """Whether the inventory's pose of ``obj`` replaces the instance's (see the module
+    docstring): :func:`takes_inventory_pose` and :func:`moved_beyond_noise`; an instance the
+    comparison of the same snapshot just posed gives way to a verified pose only, and only
+    when its own is unverified: both were estimated from the same capture."""
+    if obj.pose is None:
+        return False
+    if instance.since_snapshot_id == head_id:
+        may = _verified(obj.pose_quality) and not _verified(instance.pose_quality)
+    else:
+        may = takes_inventory_pose(instance.pose, instance.pose_quality, obj.pose_quality)
+    return may and moved_beyond_noise(
         instance.pose,
-        instance.pose_quality,
-        instance.centroid_env,
         obj.pose,
-        obj.pose_quality,
+        instance.centroid_env,
         obj.centroid_env,
-        just_posed=instance.since_snapshot_id == head_id,
+        bool((obj.pose_quality or {}).get("ambiguous")),
     )
 
 

@@ -45,7 +45,7 @@ def test_reconstruct_compare_and_pose_compose_through_the_command_lines(tmp_path
     """A 16-view scene where a wedge is added: the reconstruct folders are compare's input
     (cameras.json in the one format), compare finds the added wedge, and pose places it."""
     scene = tmp_path / "scene"
-    stage("synth", "--scenario", "added", "--preset", "demo", "--views", 16, "--poses",
+    stage("synth", "--scenario", "added", "--preset", "tiny", "--views", 16, "--poses",
           "--out", scene)  # fmt: skip
     truth = json.loads((scene / "ground_truth.json").read_text())["changes"]
     assert [(c["type"], c["object"]) for c in truth] == [("added", "wedge")]

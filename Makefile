@@ -112,10 +112,8 @@ test-tools:
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends chromium chromium-driver >/dev/null; \
 	  else echo "Install Chromium first: sudo apt-get install chromium chromium-driver"; exit 1; fi; }
 
-# pytest-xdist workers; 0 runs the suite in this process
-PYTEST_WORKERS ?= 2
 test: install test-tools console
-	$(VENV)/bin/pytest -q -n $(PYTEST_WORKERS) --dist loadgroup $(PYTEST_ARGS)
+	$(VENV)/bin/pytest -q $(PYTEST_ARGS)
 
 bench: install
 	$(PY) -m bench.run $(BENCH_ARGS)

@@ -9,26 +9,6 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-#: fixtures whose one set-up per session is minutes of work: their tests share a worker
-SHARED_SCENE_FIXTURES = {"small_scene", "embedded_api"}
-
-
-def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """For pytest-xdist's ``--dist loadgroup`` (``make test``): a file's tests run on one
-    worker (its module fixtures are set up once), the tests of :data:`SHARED_SCENE_FIXTURES`
-    on one worker, and files with a ``slow`` test are handed out first so that no worker
-    is left with a long test at the end."""
-    for item in items:
-        shared = SHARED_SCENE_FIXTURES & set(getattr(item, "fixturenames", ()))
-        group = "shared_scene" if shared else item.nodeid.split("::")[0]
-        item.add_marker(pytest.mark.xdist_group(group))
-    slow_groups = {_group(i) for i in items if i.get_closest_marker("slow")}
-    items.sort(key=lambda i: _group(i) not in slow_groups)
-
-
-def _group(item: pytest.Item) -> str:
-    marker = item.get_closest_marker("xdist_group")
-    return str(marker.args[0]) if marker else ""
 
 
 @pytest.fixture(scope="session")

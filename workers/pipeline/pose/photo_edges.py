@@ -220,17 +220,17 @@ def _fit_pass(
     centre_object: NDArray[np.float64],
     normal_env: NDArray[np.float64],
     cap_px: float,
-    first: bool,
+    starts_deg: Sequence[float],
 ) -> Mat4:
     """One pass of :func:`fit_photo_edges` on chosen silhouettes: the least-cost pose from
-    ``pose`` turned by each of :data:`START_TURNS_DEG` (``first``) or from ``pose`` alone."""
+    ``pose`` turned by each of ``starts_deg``."""
     centre = pose[:3, :3] @ centre_object + pose[:3, 3]
     stack = _stack(rims)
 
     def cost(x: NDArray[np.float64]) -> float:
         return _cost(stack, turned_in_plane(pose, normal_env, centre, x), cap_px)
 
-    best_x = least_turn_and_shift(cost, START_TURNS_DEG if first else (0.0,), ftol=1e-5)
+    best_x = least_turn_and_shift(cost, starts_deg, ftol=1e-5)
     return turned_in_plane(pose, normal_env, centre, best_x)
 
 
@@ -253,19 +253,21 @@ def fit_photo_edges(
     sight: CaptureSight,
     cap_px: float,
     max_views: int,
+    starts_deg: Sequence[float] = START_TURNS_DEG,
 ) -> EdgeFit:
     """``start`` turned about the unit ``normal_env`` (the support's) through the object's
     centre and shifted across the plane so that the model's silhouette lies on the edges
     of the photos of ``sight`` that show all of it: mean distances capped at ``cap_px``
-    over at most ``max_views`` photos, minimised (Powell) from :data:`START_TURNS_DEG`, the
-    silhouettes chosen again around the result (:data:`PASSES`). No photo shows it:
-    ``start``, ``views`` 0."""
+    over at most ``max_views`` photos, minimised (Powell) from ``start`` turned by each of
+    ``starts_deg``, the silhouettes chosen again around the result (:data:`PASSES`). No
+    photo shows it: ``start``, ``views`` 0."""
     pose = start
     rims = _rims(model, pose, sight, max_views)
     if not rims:
         return EdgeFit(start, float("inf"), float("inf"), 0)
     start_cost = _cost(_stack(rims), start, cap_px)
     for i in range(PASSES):
-        pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, i == 0)
+        turns = starts_deg if i == 0 else (0.0,)
+        pose = _fit_pass(rims, pose, model.centre_object, normal_env, cap_px, turns)
         rims = _rims(model, pose, sight, max_views) or rims
     return EdgeFit(pose, _cost(_stack(rims), pose, cap_px), start_cost, len(rims))

@@ -30,6 +30,7 @@ from workers.pipeline.pose.fit import inlier_figures
 from workers.pipeline.pose.options import PoseOptions, pose_options_from_json
 from workers.pipeline.pose.photo_edges import CaptureSight, fit_photo_edges
 from workers.pipeline.pose.result import CHOICE_FIGURES, PoseResult
+from workers.pipeline.pose.top_view import turned_in_plane
 from workers.pipeline.pose.verify import (
     FINAL_TURN_REASON,
     RUNNER_UP_REASON,
@@ -50,6 +51,11 @@ RIVAL_SEEN_MARGIN = 0.04
 #: how many times every other distinct near-tie's mean distance to the photos' edges must
 #: exceed one's (each fitted to them alike) before the photos settle the tie for it
 RIVAL_PHOTO_RATIO = 2.0
+#: the photo fits started from the published pose turned either way by the two last fits'
+#: disagreement must each end within this share of that turn of it for the photos to
+#: settle the disagreement (their turn within ``max_final_turn_deg``): more than half way
+#: back; photos that hold no turn leave a fit where it starts (1); lower settles fewer
+PHOTO_BASIN_SHARE = 0.5
 #: the environment's up: z (the markers' floor normal); the pose step and the box
 #: tie-break below judge "upright" against it
 UP_ENV = np.array([0.0, 0.0, 1.0])
@@ -262,7 +268,45 @@ def _photo_step(
             # the pose step measured these of its own choice only
             quality.update(dict.fromkeys(CHOICE_FIGURES))
             quality["chosen_by"] = "photo_edges"
+    final_turn = quality.get("final_turn_deg")
+    if not settled and not turned and final_turn and _disagree(reasons):
+        back = _photo_basin_deg(model, chosen, float(final_turn), sight, options)
+        quality["photo_edges"]["basin_deg"] = round(back, 3)
+        settled = (FINAL_TURN_REASON,) if back <= PHOTO_BASIN_SHARE * final_turn else ()
     return chosen, [r for r in reasons if not r.startswith(settled)] + turned
+
+
+def _disagree(reasons: Sequence[str]) -> bool:
+    """Whether ``reasons`` hold the two last fits' disagreement."""
+    return any(r.startswith(FINAL_TURN_REASON) for r in reasons)
+
+
+def _photo_basin_deg(
+    model: PreparedModel,
+    env_from_object: Mat4,
+    span_deg: float,
+    sight: CaptureSight,
+    o: PoseOptions,
+) -> float:
+    """How far (degrees, modulo symmetry) the photo fits from ``env_from_object`` turned
+    by −``span_deg`` and by +``span_deg`` about the up through the object's centre (one
+    start each) end from it, the larger; inf when a fit finds no photo. Small: the photos
+    hold its turn over the span the scan leaves open."""
+    centre = transform_points(env_from_object, model.centre_object[None, :])[0]
+    worst = 0.0
+    for turn_deg in (-span_deg, span_deg):
+        x = np.array([np.radians(turn_deg), 0.0, 0.0])
+        start = turned_in_plane(env_from_object, UP_ENV, centre, x)
+        fit = fit_photo_edges(
+            model, start, UP_ENV, sight, o.photo_edges_cap_px, o.photo_edges_max_views, (0.0,)
+        )
+        if fit.views == 0:
+            return float("inf")
+        turn = symmetric_pose_error(
+            fit.env_from_object, env_from_object, model.symmetry, model.centre_object
+        )[1]
+        worst = max(worst, turn)
+    return worst
 
 
 def _photo_tiebreak(

@@ -240,6 +240,65 @@ def test_the_pose_step_of_a_flat_object_ends_on_the_photos_edges(
     assert disagree in kept["pose_quality"]["reasons"]
 
 
+def disc(radius: float = 0.05, height: float = 0.015, spacing: float = 0.002) -> Plate:
+    """A round plate on z = 0: its silhouette is the same at every turn about the vertical."""
+    angles = np.arange(0.0, 2 * np.pi, spacing / radius)
+    rim = np.column_stack([np.cos(angles), np.sin(angles)])
+    zs = np.arange(0.0, height + 1e-9, spacing)
+    side = np.column_stack([np.repeat(rim * radius, len(zs), axis=0), np.tile(zs, len(rim))])
+    side_n = np.column_stack([np.repeat(rim, len(zs), axis=0), np.zeros(len(side))])
+    g = np.arange(-radius, radius + 1e-9, spacing)
+    xx, yy = np.meshgrid(g, g)
+    inside = xx**2 + yy**2 < radius**2
+    top = np.column_stack([xx[inside], yy[inside], np.full(inside.sum(), height)])
+    points = np.vstack([side, top])
+    normals = np.vstack([side_n, np.tile(UP, (len(top), 1))])
+    return Plate(points, normals, points.mean(axis=0))
+
+
+def test_the_photos_settle_the_last_fits_disagreement_where_they_hold_the_turn(
+    setting: tuple[Plate, np.ndarray, CaptureData], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The pose step chose the plate 2.5° off, its last fits 4.2° apart. The photos turn
+    it back by more than ``photo_edges_confirm_deg`` but within ``max_final_turn_deg``;
+    fitted again from their pose turned 4.2° either way, they come back more than half way:
+    they hold the turn over the span the scan leaves open and settle the disagreement."""
+    model, true, capture = setting
+    flat_model, change = for_the_pose_step(model, 0.13, capture)
+    result = replace(
+        near_tie(turned(true, 2.5, (0.0, 0.0)), true, 9),
+        runner_up_score=0.0,
+        alternatives=(),
+        rejections=(f"{FINAL_TURN_REASON} 4.2° (> 3.0°)",),
+        final_turn_deg=4.2,
+    )
+    monkeypatch.setattr(posing, "estimate_pose", lambda *a, **k: result)
+    sight = CaptureSight(capture, open_depth(capture))
+    options = POSE_PRESETS["default"]
+    cloud = SceneCloud.create(capture.points_env)
+    out = posing.pose_change(change, flat_model, cloud, sight, 0, options)
+    edges = out["pose_quality"]["photo_edges"]
+    assert options.photo_edges_confirm_deg < edges["turn_deg"] <= options.max_final_turn_deg
+    assert edges["basin_deg"] <= posing.PHOTO_BASIN_SHARE * 4.2, edges
+    # what is left is the re-projection's: this capture has no detector boxes
+    reasons = out["pose_quality"]["reasons"]
+    assert [r for r in reasons if not r.startswith("re-projection")] == [], reasons
+    assert symmetric_pose_error(np.asarray(out["pose"]), true, SymmetrySpec())[1] < 0.5
+
+
+def test_photos_that_hold_no_turn_settle_nothing(tmp_path: Path) -> None:
+    """A round plate's silhouette is the same at every turn: photo fits started 4.2°
+    either way of its pose stay there, so its basin is about the whole span, beyond
+    :data:`~workers.pipeline.pose.posing.PHOTO_BASIN_SHARE` of it."""
+    round_plate = disc()
+    true = make_rigid(rotation_about_unit_axis(UP, np.radians(30.0)), (0.02, -0.01, 0.0))
+    capture = photograph(tmp_path, round_plate, true)
+    prepared, _ = for_the_pose_step(round_plate, 0.1, capture)
+    sight = CaptureSight(capture, open_depth(capture))
+    basin = posing._photo_basin_deg(prepared, true, 4.2, sight, POSE_PRESETS["default"])
+    assert basin > 3.0 > posing.PHOTO_BASIN_SHARE * 4.2, basin
+
+
 def test_a_tall_object_is_turned_onto_the_photos_edges_too(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -50,7 +50,7 @@ from workers.demo.evaluate import match_changes
 from workers.pipeline.synth import builtin_models
 from workers.pipeline.synth.shapes import write_model_ply
 
-# 195-263 s on the shared 2-core machine (load 3-7): past the suite's 300 s default
+# four real reconstructions: minutes on a loaded 2-core machine, past the suite's 300 s default
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.e2e,

@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import open3d as o3d
@@ -39,6 +40,7 @@ from workers.pipeline.pose import (
     estimate_pose,
     random_rigid,
 )
+from workers.pipeline.pose import estimate as pose_estimate_module
 from workers.pipeline.pose.candidates import PREVIOUS_TURNS, previous_on_cluster
 from workers.pipeline.pose.crop import check_inputs, support_plane
 from workers.pipeline.pose.fit import (
@@ -445,6 +447,34 @@ def test_colour_chooses_among_upright_equivalents(
     assert dt < 0.005 and dr < 2.0
     grey = SceneCloud.create(scene.points, scene.normals, None)  # no colour: up decides
     assert estimate_pose(model, grey, cluster_points_env=obj).chosen_by == "up"
+
+
+def test_an_equivalent_carried_by_an_inexact_symmetry_is_fitted_again(
+    shared_data: Path, ycb_models: dict[str, PreparedModel], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A scanned model repeats only nearly: the group element that carries the fit to the
+    equivalent colour chose may tilt and lift it (the bench's bleach bottle: 4.5° and 6 mm).
+    Here every chosen equivalent comes 4° tilted and 5 mm up; it is a start, fitted again
+    to the scan, and the pose published is the true one."""
+    model = ycb_models["mustard_bottle"]
+    true = upright(150.0, (0.1, 0.4, 0.0))
+    scene, obj = partial_view(
+        shared_data / "ycb" / "mustard_bottle" / "textured.obj", true, 5, n_views=2
+    )
+    off = make_rigid(axis_angle_matrix(np.array([1.0, 0.0, 0.0]), np.radians(4.0)), (0, 0, 0.005))
+    real = pose_estimate_module.canonical_pose
+
+    def inexact(pose: np.ndarray, *args: Any) -> Any:
+        chosen = real(pose, *args)
+        return replace(chosen, env_from_object=chosen.env_from_object @ off)
+
+    monkeypatch.setattr(pose_estimate_module, "canonical_pose", inexact)
+    result = estimate_pose(model, scene, cluster_points_env=obj)
+    dt, dr = pose_error(result.env_from_object, true)
+    assert dt < 0.003 and dr < 1.5, (dt, dr)
+    assert result.verified, result.rejections
+    for eq, s in zip(result.equivalent_poses, model.symmetry.rotations[1:], strict=True):
+        np.testing.assert_allclose(eq, result.env_from_object @ s)
 
 
 def test_cluster_coverage_tolerates_scan_noise_not_other_things(

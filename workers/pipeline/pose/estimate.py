@@ -15,7 +15,8 @@ module each:
    best distinct alternative decide ``verified``; while not verified, steps 2-4 run again
    with new seeds, up to ``max_rounds`` rounds;
 5. :mod:`~workers.pipeline.pose.canonical`: one canonical pose among a symmetric object's
-   equivalents.
+   equivalents; one that a discrete group element carried the fit to is fitted again
+   (a scanned shape repeats only nearly).
 
 Seeded by ``PoseOptions.seed`` and repeatable: on one machine the same inputs give the
 same pose (the feature RANSAC runs on one Open3D thread). Raises RegistrationError when
@@ -26,16 +27,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from numpy.typing import ArrayLike
 
 from workers.pipeline.compare.visibility import DepthMap
 from workers.pipeline.errors import InputError, ShapeError
-from workers.pipeline.geometry import Mat4
+from workers.pipeline.geometry import Mat4, rotation_angle_deg
 from workers.pipeline.model import PreparedModel
 from workers.pipeline.pose.candidates import CandidatePool, FitContext, add_round_candidates
-from workers.pipeline.pose.canonical import canonical_pose, colour_agreement
+from workers.pipeline.pose.canonical import CanonicalPose, canonical_pose, colour_agreement
 from workers.pipeline.pose.crop import PoseInputs, SceneCloud, check_inputs, crop_scene
 from workers.pipeline.pose.options import FINAL_FITS, POSE_PRESETS, PoseOptions
 from workers.pipeline.pose.refine import Refined, Refinement, Refiner
@@ -46,12 +47,14 @@ from workers.pipeline.pose.verify import FitVerification, verify_fit
 @dataclass(frozen=True)
 class _Fit:
     """What steps 2-4 leave: the last round's ``refinement`` and its ``verification``, every
-    candidate ``trials`` and the refined ``alternatives`` to the winner, best first."""
+    candidate ``trials``, the refined ``alternatives`` to the winner, best first, and the
+    ``refiner`` that made them."""
 
     refinement: Refinement
     verification: FitVerification
     trials: tuple[Trial, ...]
     alternatives: tuple[Refined, ...]
+    refiner: Refiner
 
 
 def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) -> _Fit:
@@ -70,7 +73,37 @@ def _fit_rounds(ctx: FitContext, inputs: PoseInputs, timings: dict[str, float]) 
         if verdict.verified:
             break
     timings["rounds"] = float(round_ + 1)
-    return _Fit(fit, verdict, tuple(pool.trials), fit.others)
+    return _Fit(fit, verdict, tuple(pool.trials), fit.others, refiner)
+
+
+def _published(
+    ctx: FitContext, inputs: PoseInputs, rounds: _Fit
+) -> tuple[CanonicalPose, Refinement, FitVerification]:
+    """Step 5: the canonical pose of the last round's fit, with the fit and verification
+    it is published with."""
+    model, options = ctx.model, ctx.options
+    fit, verdict = rounds.refinement, rounds.verification
+
+    def colour(pose: Mat4) -> float:
+        return colour_agreement(model, pose, ctx.region.target_fine, fit.inlier_distance_m)
+
+    canonical = canonical_pose(
+        fit.env_from_object, model, inputs.up, inputs.previous, colour, options.colour_margin
+    )
+    if model.symmetry.kind == "discrete" and not _same_rotation(canonical.env_from_object, fit):
+        # the equivalent chosen is the fit carried by a group element of a shape that
+        # repeats only nearly: fitted again from there, and verified as fitted
+        fit = rounds.refiner.refit(canonical.env_from_object, fit)
+        verdict = verify_fit(fit, model.points, inputs.cluster, model.voxel_m, options)
+        pose = fit.env_from_object
+        others = tuple(pose @ s for s in model.symmetry.rotations[1:])
+        canonical = replace(canonical, env_from_object=pose, equivalents=others)
+    return canonical, fit, verdict
+
+
+def _same_rotation(pose: Mat4, fit: Refinement) -> bool:
+    """Whether ``pose`` turns the object as ``fit``'s pose does (within 0.1°)."""
+    return rotation_angle_deg(pose[:3, :3].T @ fit.env_from_object[:3, :3]) < 0.1
 
 
 def _unsettled(model: PreparedModel, chosen_by: str) -> tuple[str, ...]:
@@ -129,14 +162,7 @@ def estimate_pose(
     }
     ctx = FitContext(model, region, free_space, options, inputs.up)
     rounds = _fit_rounds(ctx, inputs, timings)
-    fit, verdict = rounds.refinement, rounds.verification
-
-    def colour(pose: Mat4) -> float:
-        return colour_agreement(model, pose, region.target_fine, fit.inlier_distance_m)
-
-    canonical = canonical_pose(
-        fit.env_from_object, model, inputs.up, inputs.previous, colour, options.colour_margin
-    )
+    canonical, fit, verdict = _published(ctx, inputs, rounds)
     rejections = verdict.rejections + _unsettled(model, canonical.chosen_by)
     timings["total"] = time.perf_counter() - t_start
     return PoseResult(

@@ -20,7 +20,7 @@ ones the outline seen from above may settle which face and turn the scan shows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -408,6 +408,25 @@ class Refiner:
         done = _Finished(refined, env_from_object, slack, max(turn, rest_turn), tipped, evaluated)
         self.finished[id(refined)] = done
         return done
+
+    def refit(self, start: Mat4, like: Refinement) -> Refinement:
+        """``like`` with its pose replaced by ``start`` (its equivalent under the model's
+        discrete symmetry) refined and finished as a winner is, and that pose's fitness,
+        slack, turns and tilt: a scanned model repeats only nearly, so the group element
+        that carried the pose there is a start, not a pose. Its score, runner-up and
+        others stay ``like``'s."""
+        trial = Trial("equivalent", like.score, like.fitness, like.inlier_rmse_m, 0, start)
+        done = self._finish(self._refine(trial))
+        fitness, rmse = done.evaluated or self.evaluate(done.env_from_object)
+        return replace(
+            like,
+            env_from_object=done.env_from_object,
+            fitness=fitness,
+            inlier_rmse_m=rmse,
+            rotation_slack_deg=done.rotation_slack_deg,
+            final_turn_deg=done.final_turn_deg,
+            tipped_deg=done.tipped_deg,
+        )
 
     def _distinct(self, a: Mat4, b: Mat4) -> bool:
         """:func:`distinct_pose` for this model."""

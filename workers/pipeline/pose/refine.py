@@ -411,12 +411,13 @@ class Refiner:
 
     def refit(self, start: Mat4, like: Refinement) -> Refinement:
         """``like`` with its pose replaced by ``start`` (its equivalent under the model's
-        discrete symmetry) refined and finished as a winner is, and that pose's fitness,
-        slack, turns and tilt: a scanned model repeats only nearly, so the group element
-        that carried the pose there is a start, not a pose. Its score, runner-up and
-        others stay ``like``'s."""
+        discrete symmetry) finished as a winner is (:meth:`_finish`: the fine ICP, the
+        last fit, at rest), and that pose's fitness, slack, turns and tilt: a scanned
+        model repeats only nearly, so the group element that carried the pose there
+        leaves it a little off, not far (the coarse ICP scales would let it slide).
+        Its score, runner-up and others stay ``like``'s."""
         trial = Trial("equivalent", like.score, like.fitness, like.inlier_rmse_m, 0, start)
-        done = self._finish(self._refine(trial))
+        done = self._finish(Refined(self.score(start), start, trial))
         fitness, rmse = done.evaluated or self.evaluate(done.env_from_object)
         return replace(
             like,

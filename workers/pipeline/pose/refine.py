@@ -417,7 +417,7 @@ class Refiner:
         leaves it a little off, not far (the coarse ICP scales would let it slide).
         Its score, runner-up and others stay ``like``'s."""
         trial = Trial("equivalent", like.score, like.fitness, like.inlier_rmse_m, 0, start)
-        done = self._finish(Refined(self.score(start), start, trial))
+        done = self._finish(Refined(like.score, start, trial))  # the score is like's
         fitness, rmse = done.evaluated or self.evaluate(done.env_from_object)
         return replace(
             like,

@@ -1030,7 +1030,7 @@ def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_th
     rival) and its other face up (distinct either way: its outline is the mirror image
     and leaves the scan's points outside it, so the outline settles the tie). With the
     outline off, the other face stays the runner-up; given the other face as the winner,
-    the outline chooses the true pose."""
+    the outline chooses the true pose. The near-ties are handed on finished."""
     from workers.pipeline.pose.candidates import CandidatePool
     from workers.pipeline.pose.refine import Refined
     from workers.pipeline.pose.result import Trial
@@ -1068,6 +1068,11 @@ def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_th
         spun_done = refiner.finished[id(refiner.refined[1])].env_from_object
         assert pose_error(spun_done, fit.env_from_object)[1] < 1.0
         assert [r.score for r in fit.others] == [0.97, 0.95]
+        # and is handed on at its finished pose, as every near-tie is
+        assert all(
+            r.env_from_object is refiner.finished[id(r0)].env_from_object
+            for r, r0 in zip(fit.others, refiner.refined[1:], strict=True)
+        )
     winner, mirrored = (
         refiner.finished[id(refiner.refined[0])],
         refiner.finished[id(refiner.refined[2])],

@@ -162,6 +162,7 @@ def test_the_photos_edges_settle_a_near_tie_only_by_twice_the_cost(
         options,
         quality,
         reasons,  # type: ignore[arg-type]
+        False,
     )
     if settled_for is None:
         assert "settled_by_photo_edges" not in quality
@@ -176,3 +177,49 @@ def test_the_photos_edges_settle_a_near_tie_only_by_twice_the_cost(
     assert pose is expected
     if settled_for:
         assert quality["chosen_by"] == "photo_edges" and quality["runner_up_ratio"] is None
+
+
+@pytest.mark.parametrize(
+    ("righted", "down_costs", "switched_to"),
+    [
+        (True, (0.4, 0.5), 2),  # upside down 3 × better than every upright pose: its best
+        (False, (0.4, 0.5), None),  # the scan did not prefer upside down: the tie stands
+        (True, (0.7, 0.8), None),  # upside down within 2 × of upright: not settled
+    ],
+)
+def test_the_photos_settle_the_way_up_of_a_pose_stood_upright_against_the_scan(
+    monkeypatch: pytest.MonkeyPatch,
+    righted: bool,
+    down_costs: tuple[float, float],
+    switched_to: int | None,
+) -> None:
+    # the chosen pose (upright, 1.2 px), an upright near-tie (1.5 px) and two upside-down
+    # ones turned about x; the two upside-down ones tie with each other
+    costs = {0.0: 1.2, 1.0: 1.5, 2.0: down_costs[0], 3.0: down_costs[1]}
+    chosen, *near_ties = _photo_fits(monkeypatch, costs)
+    for pose in near_ties[1:]:
+        pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    model = SimpleNamespace(up_object=np.array([0.0, 0.0, 1.0]))
+    moved = posing_module._on_photo_edges(model, chosen, None, None)  # type: ignore[arg-type]
+    quality: dict[str, Any] = {"runner_up_ratio": 1.4, "chosen_by": "up"}
+    reasons = [f"{RUNNER_UP_REASON} 1.40 of the best (> 0.85)", "x"]
+    pose, left = posing_module._photo_step(
+        model,  # type: ignore[arg-type]
+        moved,
+        near_ties,
+        None,  # type: ignore[arg-type]
+        POSE_PRESETS["default"],
+        quality,
+        reasons,
+        righted,
+    )
+    if switched_to is None:
+        assert "settled_by_photo_edges" not in quality
+        assert pose is chosen and left == [*reasons, "turned 0"]
+        return
+    # the way up is settled, not the near-ties standing that way: still unverified
+    assert pose is near_ties[switched_to - 1]
+    assert left == [*reasons, f"turned {switched_to}"]
+    tie = quality["settled_by_photo_edges"]
+    assert tie == {"cost_px": 0.4, "best_rival_px": 1.2, "switched": True, "way_up_only": True}
+    assert quality["chosen_by"] == "photo_edges"

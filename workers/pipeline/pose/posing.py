@@ -160,14 +160,13 @@ def pose_change(
                 chosen, check = switched, checks[by_boxes.index]
             if by_boxes.margin >= RIVAL_IOU_MARGIN and chosen is candidates[by_boxes.index]:
                 reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
-                quality["settled_by_reprojection"] = {
-                    "mean_iou": round(by_boxes.value, 4),
-                    "best_rival_iou": round(by_boxes.rival, 4),
-                }
+                quality["settled_by_reprojection"] = by_boxes.to_json("mean_iou", "best_rival_iou")
     near_ties = [p for p in [pose.env_from_object, *rivals] if p is not chosen]
     moved = _on_photo_edges(model, chosen, sight, options)
     if moved is not None:
-        chosen, reasons = _photo_step(model, moved, near_ties, sight, options, quality, reasons)
+        chosen, reasons = _photo_step(
+            model, moved, near_ties, sight, options, quality, reasons, pose.righted
+        )
         quality.update(_fit_figures(model, scene, chosen, pose.inlier_distance_m))
         check = check_of(chosen)
     quality["visible_fitness"] = seen_of(chosen)
@@ -231,14 +230,19 @@ class _PhotoTie:
     winner: _Moved
     cost_px: float
     rival_px: float
+    way_up_only: bool = False
 
     def to_json(self) -> dict[str, Any]:
-        """``{"cost_px", "best_rival_px", "switched"}``."""
-        return {
+        """``{"cost_px", "best_rival_px", "switched"}``, and ``"way_up_only": true`` when
+        only the way up is settled."""
+        out: dict[str, Any] = {
             "cost_px": round(self.cost_px, 4),
             "best_rival_px": round(self.rival_px, 4),
             "switched": self.index != 0,
         }
+        if self.way_up_only:
+            out["way_up_only"] = True
+        return out
 
 
 def _photo_step(
@@ -249,19 +253,21 @@ def _photo_step(
     options: PoseOptions,
     quality: dict[str, Any],
     reasons: list[str],
+    righted: bool,
 ) -> tuple[Mat4, list[str]]:
     """The pose the photos' edges hold (``moved``, its figures put in ``quality``) and the
-    reasons left: a near-tie they settle (:func:`_photo_tiebreak`) is dropped, for the
-    near-tie they prefer if it is not the chosen pose (then the pose step's reasons all
-    stand), else the last fits' disagreement they confirm; their turn beyond the limit is
-    added."""
+    reasons left: a near-tie they settle (:func:`_photo_tiebreak`; ``righted``: the pose
+    step stood the pose upright against the scan) is dropped, for the near-tie they prefer
+    if it is not the chosen pose (then the pose step's reasons all stand), else the last
+    fits' disagreement they confirm; their turn beyond the limit is added."""
     chosen, quality["photo_edges"], settled, turned = moved
     tie = None
     if any(r.startswith(RUNNER_UP_REASON) for r in reasons):
-        tie = _photo_tiebreak(model, moved, near_ties, sight, options)
+        tie = _photo_tiebreak(model, moved, near_ties, sight, options, righted)
     if tie is not None:
         quality["settled_by_photo_edges"] = tie.to_json()
-        reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
+        if not tie.way_up_only:
+            reasons = [r for r in reasons if not r.startswith(RUNNER_UP_REASON)]
         if tie.index != 0:  # the pose step's reasons stand: they were not about this pose
             chosen, quality["photo_edges"], _, turned = tie.winner
             settled = ()
@@ -315,10 +321,14 @@ def _photo_tiebreak(
     near_ties: Sequence[Mat4],
     sight: CaptureSight,
     options: PoseOptions,
+    righted: bool,
 ) -> _PhotoTie | None:
     """Each distinct near-tie fitted to the photos' edges as the chosen pose was
     (``moved``; the near-ties on ``options.threads`` threads): the one whose cost every
-    other's exceeds :data:`RIVAL_PHOTO_RATIO` times. None when none does, or when a
+    other's exceeds :data:`RIVAL_PHOTO_RATIO` times. Else, when the pose step stood the
+    chosen pose upright against the scan (``righted``), the best upside-down one when
+    every upright one's cost exceeds it as many times: the photos settle the way up only
+    (``way_up_only``), not the near-ties standing that way. None when neither, or when a
     near-tie has no photo that shows all of it."""
     others = ordered_map(
         lambda alt: _on_photo_edges(model, alt, sight, options), near_ties, options.threads
@@ -329,9 +339,18 @@ def _photo_tiebreak(
     costs = [float(f[1]["cost_px"]) for f in fits]
     best = int(np.argmin(costs))
     rival = min((c for i, c in enumerate(costs) if i != best), default=float("inf"))
-    if rival < RIVAL_PHOTO_RATIO * costs[best]:
+    if rival >= RIVAL_PHOTO_RATIO * costs[best]:
+        return _PhotoTie(best, fits[best], costs[best], rival)
+    if not righted:
         return None
-    return _PhotoTie(best, fits[best], costs[best], rival)
+    up = [upright(f[0], model.up_object, UP_ENV) for f in fits]
+    down = min((i for i in range(len(fits)) if not up[i]), key=costs.__getitem__, default=None)
+    if down is None:
+        return None
+    standing = min(c for c, u in zip(costs, up, strict=True) if u)  # the chosen pose is one
+    if standing < RIVAL_PHOTO_RATIO * costs[down]:
+        return None
+    return _PhotoTie(down, fits[down], costs[down], standing, way_up_only=True)
 
 
 @dataclass(frozen=True)
@@ -349,9 +368,9 @@ class _Tiebreak:
         """How much better the preferred candidate is than every other."""
         return self.value - self.rival
 
-    def to_json(self, figure: str) -> dict[str, float]:
-        """``{figure: value, "best_rival": rival}``, rounded."""
-        return {figure: round(self.value, 4), "best_rival": round(self.rival, 4)}
+    def to_json(self, figure: str, rival: str = "best_rival") -> dict[str, float]:
+        """``{figure: value, rival: rival value}``, rounded."""
+        return {figure: round(self.value, 4), rival: round(self.rival, 4)}
 
 
 def _tiebreak(

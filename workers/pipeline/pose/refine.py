@@ -75,7 +75,8 @@ class Refinement:
     scan-to-model fit turned the ICP's pose, or the refit on the support turned the pose
     set flat, whichever is more, modulo symmetry (both 0 when not computed), and
     ``tipped_deg``, the tilt taken out when it touched its support on nothing it could rest
-    on (0 otherwise); ``others``: every other refined pose, best first;
+    on (0 otherwise); ``others``: every other refined pose, best first, a near-tie finished
+    as the winner was (:meth:`Refiner._finish`) at its finished pose;
     ``settled_by_outline``: (its outline's cost per scan point, the least near-tie's) when
     the outline settled the near-ties of a flat pose (:meth:`Refiner._by_outline`), else
     None."""
@@ -515,6 +516,14 @@ class Refiner:
             rotation_slack_deg=won.rotation_slack_deg,
             final_turn_deg=won.final_turn_deg,
             tipped_deg=won.tipped_deg,
-            others=tuple(r for r in self.refined if r is not won.refined),
+            # a near-tie finished above is given as finished: the tie-breaks after the pose
+            # step compare it with the winner, which is finished too
+            others=tuple(
+                replace(r, env_from_object=contending[id(r)].env_from_object)
+                if id(r) in contending
+                else r
+                for r in self.refined
+                if r is not won.refined
+            ),
             settled_by_outline=settled,
         )

@@ -43,7 +43,8 @@ class PoseResult:
     ``symmetry_axis_env`` through ``symmetry_origin_env``). ``chosen_by``: "unique",
     "colour", "previous" or "up". ``cluster_coverage`` is None when no cluster points were given.
     ``alternatives``: the other refined hypotheses (:class:`Alternative`), best
-    first — for a caller whose re-projection check rejects the chosen pose.
+    first, a near-tie at its finished pose — for a caller whose re-projection check
+    rejects the chosen pose.
     ``rotation_slack_deg``: the rotation the scan's residual level hides
     (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`); ``final_turn_deg``: how far the
     last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed);
@@ -72,6 +73,12 @@ class PoseResult:
     final_turn_deg: float = 0.0
     settled_by_outline: tuple[float, float] | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def righted(self) -> bool:
+        """Whether an upright pose was published over an upside-down one that scored
+        better (``PoseOptions.upright_ratio``): the scan preferred the other way up."""
+        return self.runner_up_score > self.score
 
     def quality_json(self) -> dict[str, Any]:
         """The ``pose_quality`` object of the comparison contract: the verification's figures

@@ -347,8 +347,8 @@ def _photo_tiebreak(
     down = min((i for i in range(len(fits)) if not up[i]), key=costs.__getitem__, default=None)
     if down is None:
         return None
-    standing = min(c for c, u in zip(costs, up, strict=True) if u)  # the chosen pose is one
-    if standing < RIVAL_PHOTO_RATIO * costs[down]:
+    standing = min((c for c, u in zip(costs, up, strict=True) if u), default=None)
+    if standing is None or standing < RIVAL_PHOTO_RATIO * costs[down]:
         return None
     return _PhotoTie(down, fits[down], costs[down], standing, way_up_only=True)
 

@@ -1008,6 +1008,7 @@ def test_an_upside_down_best_gives_way_to_an_upright_pose_within_upright_ratio(
     opening, which its base fits upside down): an upright pose resting on the support that
     scores at least ``upright_ratio`` (0.7) × an upside-down best wins; one scoring less
     does not."""
+    from workers.pipeline.pose.candidates import CandidatePool
     from workers.pipeline.pose.refine import Refined
     from workers.pipeline.pose.result import Trial
 
@@ -1020,6 +1021,10 @@ def test_an_upside_down_best_gives_way_to_an_upright_pose_within_upright_ratio(
     winner = refiner._winner()
     assert (winner.env_from_object is true) == takes_upright
     assert (winner.env_from_object is upside_down) == (not takes_upright)
+    # the round that publishes it says whether the rule stood it up against the scan
+    refiner.turned_ids = {id(r) for r in refiner.refined}  # no upright turns added
+    fit = refiner.round(CandidatePool(refiner.ctx, None))  # type: ignore[arg-type]
+    assert fit.righted == takes_upright
 
 
 def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_them(
@@ -1068,6 +1073,7 @@ def test_near_ties_are_finished_as_the_winner_and_a_flat_ones_outline_settles_th
         spun_done = refiner.finished[id(refiner.refined[1])].env_from_object
         assert pose_error(spun_done, fit.env_from_object)[1] < 1.0
         assert [r.score for r in fit.others] == [0.97, 0.95]
+        assert not fit.righted  # the best pose won
         # and is handed on at its finished pose, as every near-tie is
         assert all(
             r.env_from_object is refiner.finished[id(r0)].env_from_object

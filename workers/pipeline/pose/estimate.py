@@ -187,5 +187,6 @@ def estimate_pose(
         rotation_slack_deg=fit.rotation_slack_deg,
         final_turn_deg=fit.final_turn_deg,
         settled_by_outline=fit.settled_by_outline,
+        righted=fit.righted,
         timings_s=timings,
     )

@@ -79,7 +79,8 @@ class Refinement:
     as the winner was (:meth:`Refiner._finish`) at its finished pose;
     ``settled_by_outline``: (its outline's cost per scan point, the least near-tie's) when
     the outline settled the near-ties of a flat pose (:meth:`Refiner._by_outline`), else
-    None."""
+    None; ``righted``: the upright rule stood the winner up over a better-scoring
+    upside-down pose (:meth:`Refiner._winner`)."""
 
     env_from_object: Mat4
     score: float
@@ -93,6 +94,7 @@ class Refinement:
     tipped_deg: float = 0.0
     others: tuple[Refined, ...] = ()
     settled_by_outline: tuple[float, float] | None = None
+    righted: bool = False
 
 
 @dataclass(frozen=True)
@@ -526,4 +528,5 @@ class Refiner:
                 if r is not won.refined
             ),
             settled_by_outline=settled,
+            righted=best is not self.refined[0],
         )

@@ -49,7 +49,9 @@ class PoseResult:
     (:func:`~workers.pipeline.pose.fit.rotation_slack_deg`); ``final_turn_deg``: how far the
     last fit turned the refinement's ICP pose, modulo symmetry (both 0 when not computed);
     ``settled_by_outline``: (the chosen pose's outline cost per scan point, the best
-    near-tie's) when a flat object's outline settled its near-ties, else None."""
+    near-tie's) when a flat object's outline settled its near-ties, else None.
+    ``righted``: an upright pose was published over an upside-down one that scored better
+    (``PoseOptions.upright_ratio``): the scan preferred the other way up."""
 
     env_from_object: Mat4
     fitness: float
@@ -72,13 +74,8 @@ class PoseResult:
     rotation_slack_deg: float = 0.0
     final_turn_deg: float = 0.0
     settled_by_outline: tuple[float, float] | None = None
+    righted: bool = False
     timings_s: dict[str, float] = field(default_factory=dict)
-
-    @property
-    def righted(self) -> bool:
-        """Whether an upright pose was published over an upside-down one that scored
-        better (``PoseOptions.upright_ratio``): the scan preferred the other way up."""
-        return self.runner_up_score > self.score
 
     def quality_json(self) -> dict[str, Any]:
         """The ``pose_quality`` object of the comparison contract: the verification's figures

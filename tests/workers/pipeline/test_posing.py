@@ -223,3 +223,23 @@ def test_the_photos_settle_the_way_up_of_a_pose_stood_upright_against_the_scan(
     tie = quality["settled_by_photo_edges"]
     assert tie == {"cost_px": 0.4, "best_rival_px": 1.2, "switched": True, "way_up_only": True}
     assert quality["chosen_by"] == "photo_edges"
+
+
+def test_the_way_up_rule_settles_nothing_when_no_pose_stands_upright(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # every pose upside down: there is no upright pose for the photos to beat
+    chosen, *near_ties = _photo_fits(monkeypatch, {0.0: 1.2, 1.0: 0.4, 2.0: 0.5})
+    for pose in (chosen, *near_ties):
+        pose[:3, :3] = np.diag([1.0, -1.0, -1.0])
+    model = SimpleNamespace(up_object=np.array([0.0, 0.0, 1.0]))
+    moved = posing_module._on_photo_edges(model, chosen, None, None)  # type: ignore[arg-type]
+    tie = posing_module._photo_tiebreak(
+        model,  # type: ignore[arg-type]
+        moved,
+        near_ties,
+        None,  # type: ignore[arg-type]
+        POSE_PRESETS["default"],
+        True,
+    )
+    assert tie is None

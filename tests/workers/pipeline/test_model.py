@@ -210,6 +210,30 @@ def test_texture_colours_are_read_the_right_way_up(shared_data: Path) -> None:
     assert np.mean(np.abs(colours - expected).max(axis=1) < 0.02) > 0.95
 
 
+def test_two_preparations_of_one_model_interleaved_both_finish(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Two workers preparing the same model into one directory: the second finishes while
+    the first is about to publish its summary; neither loses its temporary file."""
+    mesh = _box_mesh(tmp_path / "box.ply", (0.1, 0.06, 0.04))
+    work = tmp_path / "prepared"
+    real_replace = Path.replace
+    interleaved: list[bool] = []
+
+    def replace_after_the_other(self: Path, target: Path) -> Path:
+        if not interleaved:
+            interleaved.append(True)
+            prepare_model(mesh, work, FAST)  # the other worker, start to finish
+        return real_replace(self, target)
+
+    monkeypatch.setattr(Path, "replace", replace_after_the_other)
+    prepared = prepare_model(mesh, work, FAST)
+    assert interleaved
+    assert prepared.diameter_m == pytest.approx(np.linalg.norm([0.1, 0.06, 0.04]), rel=0.05)
+    assert not list(work.glob("*.tmp"))
+    assert load_prepared(work).diameter_m == prepared.diameter_m
+
+
 def test_load_prepared_refuses_an_incomplete_directory(tmp_path: Path) -> None:
     with pytest.raises(InputError, match=r"summary\.json"):
         load_prepared(tmp_path)

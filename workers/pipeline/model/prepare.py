@@ -30,6 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+import uuid
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -180,7 +181,8 @@ def prepare_model(
     o3d.io.write_point_cloud(work_dir / "model_down.ply", make_cloud(d_pts, d_nrm, d_col))
     np.save(work_dir / "features.npy", np.hstack([f_pts, f_nrm]))
     np.save(work_dir / "fpfh.npy", fpfh.astype(np.float32))
-    tmp = summary_path.with_suffix(".json.tmp")
+    # a name of its own: two workers preparing the same model must not share a temporary file
+    tmp = summary_path.with_name(f"summary.json.{uuid.uuid4().hex}.tmp")
     tmp.write_text(json.dumps(summary, indent=2))
     tmp.replace(summary_path)  # written last: its presence means the directory is complete
     return load_prepared(work_dir)

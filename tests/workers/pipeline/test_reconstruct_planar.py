@@ -435,3 +435,27 @@ def test_low_wall_bands_are_found_over_floor_noise() -> None:
         p.offset_m * np.sign(p.normal_env[1]) for p in planes if abs(p.normal_env[1]) > 0.9999
     )
     assert len(walls_y) == 2 and abs(walls_y[0] + 3.0) < 0.003 and abs(walls_y[1] - 3.0) < 0.003
+
+
+def test_a_far_wall_band_fitted_seven_degrees_off_upright_is_made_upright() -> None:
+    """A 7 m room's y = 3.5 wall seen only in a far band 0.25 m high whose points lean 7°
+    back from upright (a generated two-wall room's after capture fitted its walls 5.3-7°
+    off, which a 5° snap left tilted: the plane then filled the wall up to 7 cm behind the
+    true one). With the default 10° the wall is upright and within 1 cm of the band's
+    median; with 5° it keeps the lean."""
+    rng = np.random.default_rng(11)
+    floor = np.c_[rng.uniform(-3.5, 3.5, (40000, 2)), rng.normal(0, 0.003, 40000)]
+    z_band = rng.uniform(0.0, 0.25, 1500)
+    lean = np.tan(np.radians(7.0))
+    wall = np.c_[rng.uniform(-3.5, 3.0, 1500), 3.5 + z_band * lean, z_band]
+    wall[:, 1] += rng.normal(0, 0.003, 1500)
+    pts = np.concatenate([floor, wall])
+    for snap_deg, upright in ((10.0, True), (5.0, False)):
+        planes = detect_planes(pts, replace(ReconstructOptions(), planar_orthogonal_deg=snap_deg))
+        assert abs(planes[0].normal_env[2]) > 0.9999
+        walls = [p for p in planes[1:] if abs(p.normal_env[1]) > 0.99]
+        assert len(walls) == 1
+        assert (abs(float(walls[0].normal_env @ planes[0].normal_env)) < 1e-9) == upright
+        if upright:
+            y = walls[0].offset_m * np.sign(walls[0].normal_env[1])
+            assert abs(y - float(np.median(wall[:, 1]))) < 0.01

@@ -68,7 +68,7 @@ class ReconstructOptions:
     planar_ransac_threshold_m: float = 0.015  # RANSAC inlier distance to a plane
     planar_ransac_iterations: int = 512  # RANSAC hypotheses per plane
     planar_min_points: int = 300  # inliers (voxels) a plane needs to be kept
-    planar_orthogonal_deg: float = 5.0  # planes this near ⊥ or ∥ to the first are made exactly so
+    planar_orthogonal_deg: float = 10.0  # planes this near ⊥ or ∥ to the first are made exactly so
     planar_manhattan_deg: float = 2.0  # walls this near one rectangular layout turn onto it; 0: off
     planar_cell_m: float = 0.25  # cell of a plane's extent grid
     planar_margin_m: float = 2.0  # how far a plane's extent reaches past its seen cells

@@ -204,7 +204,7 @@ def _orthogonalise(
     perpendicular (a wall on a floor), one within ``max_deg`` of parallel to it made exactly
     parallel (a table top), each with its offset the median over its inliers, which are
     recounted; any other plane is returned as it is. A narrow band of far, noisy points
-    (a wall's lower edge) fixes a plane's tilt about the band poorly (2-4° measured); the
+    (a wall's lower edge) fixes a plane's tilt about the band poorly (2-7° measured); the
     perpendicular is the better estimate when the fitted plane is that close to it. A plane
     a few degrees off the floor through the lower edges of several walls and stray floor
     points (found in a generated room) keeps few inliers once made level."""

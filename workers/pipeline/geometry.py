@@ -108,6 +108,18 @@ def rotation_about_unit_axis(unit_axis: ArrayLike, angle_rad: float) -> NDArray[
     return out
 
 
+def rotation_onto(from_unit: ArrayLike, to_unit: ArrayLike) -> NDArray[np.float64]:
+    """(3, 3) smallest rotation turning the (3,) unit vector ``from_unit`` onto ``to_unit``
+    (opposite vectors: 180° about an axis perpendicular to both)."""
+    a = np.asarray(from_unit, dtype=np.float64)
+    b = np.asarray(to_unit, dtype=np.float64)
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(a @ b)
+    if sin < 1e-12:
+        return np.eye(3) if cos > 0 else rotation_about_unit_axis(perpendicular_pair(a)[0], np.pi)
+    return rotation_about_unit_axis(axis / sin, float(np.arctan2(sin, cos)))
+
+
 def axis_angle_matrix(axis: ArrayLike, angle_rad: float) -> NDArray[np.float64]:
     """(3, 3) rotation by ``angle_rad`` (right-handed) about the (3,) ``axis`` (any length > 0);
     ShapeError for a wrong shape or a zero or non-finite axis."""

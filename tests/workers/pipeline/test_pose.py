@@ -41,7 +41,11 @@ from workers.pipeline.pose import (
     random_rigid,
 )
 from workers.pipeline.pose import estimate as pose_estimate_module
-from workers.pipeline.pose.candidates import PREVIOUS_TURNS, previous_on_cluster
+from workers.pipeline.pose.candidates import (
+    PREVIOUS_TURNS,
+    previous_on_cluster,
+    upright_on_cluster,
+)
 from workers.pipeline.pose.crop import check_inputs, support_plane
 from workers.pipeline.pose.fit import (
     ModelSurface,
@@ -357,6 +361,38 @@ def test_a_moved_objects_previous_orientation_is_tried_on_its_cluster(
     )
     dt, dr = pose_error(result.env_from_object, true)
     assert dt < 0.005 and dr < 2.0, (dt, dr)
+
+
+def test_an_added_object_is_tried_standing_as_the_library_gives_it(
+    shared_data: Path, ycb_models: dict[str, PreparedModel]
+) -> None:
+    """Added, with no previous pose: the model standing on its library up, set on the
+    cluster and turned about the up axis, gives a start within 15° and 2 cm of an upright
+    truth, every start upright with its lowest point at the cluster's; an estimate with an
+    upright previous pose tries no such start (its own turns stand the same way)."""
+    model = ycb_models["power_drill"]
+    mesh = shared_data / "ycb" / "power_drill" / "textured.obj"
+    rest = np.asarray(model.points) @ UP
+    true = upright(130.0, (0.9, 0.4, -float(rest.min())))
+    scene, obj = partial_view(mesh, true, 5, n_views=2)
+    starts = upright_on_cluster(model, check_inputs(obj, None, None, UP), obj)
+    assert len(starts) == PREVIOUS_TURNS
+    for s in starts:
+        assert float(s[:3, :3] @ model.up_object @ UP) == pytest.approx(1.0, abs=1e-9)
+        assert float(np.min(transform_points(s, model.points) @ UP)) == pytest.approx(
+            float(np.min(obj @ UP)), abs=1e-9
+        )
+    dt, dr = min((pose_error(s, true) for s in starts), key=lambda e: e[1])
+    assert dr < 15.0 and dt < 0.02, (dt, dr)
+    assert upright_on_cluster(model, check_inputs(obj, None, None, UP), obj[:0]) == []
+    options = replace(POSE_PRESETS["default"], n_seeds=0, max_rounds=1)
+    added = estimate_pose(model, scene, cluster_points_env=obj, options=options)
+    assert sum(t.source.startswith("upright turned") for t in added.trials) >= PREVIOUS_TURNS
+    previous = upright(20.0, (-0.7, 0.2, -float(rest.min())))
+    moved = estimate_pose(
+        model, scene, cluster_points_env=obj, previous_env_from_object=previous, options=options
+    )
+    assert not any(t.source.startswith("upright turned") for t in moved.trials)
 
 
 def test_flat_object_on_the_floor_from_the_top_of_its_cluster(

@@ -28,6 +28,7 @@ from workers.pipeline.geometry import (
     invert_rigid,
     make_rigid,
     rotation_about_unit_axis,
+    rotation_onto,
     rounded_rigid,
     transform_points,
 )
@@ -225,8 +226,10 @@ def moment_candidates(model: PreparedModel, cluster: Points) -> list[Mat4]:
 
 def _start_candidates(pool: CandidatePool, inputs: PoseInputs) -> None:
     """First-round starts independent of descriptors: the previous pose, as it stood and
-    set on the cluster (:func:`previous_on_cluster`), then the four principal-axis
-    alignments of what of the cluster stands above the support."""
+    set on the cluster (:func:`previous_on_cluster`), the model standing as the library
+    gives it, set on the cluster (:func:`upright_on_cluster`, unless the previous pose
+    already stands so), then the four principal-axis alignments of what of the cluster
+    stands above the support."""
     if inputs.previous is not None:
         pool.polish(inputs.previous, "previous pose", time.perf_counter())
     cluster = inputs.cluster
@@ -240,29 +243,50 @@ def _start_candidates(pool: CandidatePool, inputs: PoseInputs) -> None:
             standing = above if len(above) >= 10 else cluster
         for k, init in enumerate(previous_on_cluster(pool.ctx.model, inputs, standing)):
             pool.polish(init, f"previous turned {k}", time.perf_counter())
+        if inputs.previous is None or not pool.ctx.upright(inputs.previous):
+            for k, init in enumerate(upright_on_cluster(pool.ctx.model, inputs, standing)):
+                pool.polish(init, f"upright turned {k}", time.perf_counter())
         for k, init in enumerate(moment_candidates(pool.ctx.model, standing)):
             pool.polish(init, f"cluster axes {k}", time.perf_counter())
 
 
-def previous_on_cluster(model: PreparedModel, inputs: PoseInputs, standing: Points) -> list[Mat4]:
-    """The previous pose's orientation turned about the up axis in :data:`PREVIOUS_TURNS`
-    steps, each set with the model's centre over the (K, 3) ``standing`` cluster points'
-    mean and its lowest point at their lowest (env frame, metres): where a moved object,
-    slid or carried and set down on the same face, now stands (the previous pose itself
-    lies where it stood before). [] without a previous pose or standing points."""
-    if inputs.previous is None or len(standing) == 0:
-        return []
-    up = inputs.up
+def _turned_on_cluster(
+    model: PreparedModel, rotation: NDArray[np.float64], up: NDArray[np.float64], standing: Points
+) -> list[Mat4]:
+    """The (3, 3) ``rotation`` turned about the unit ``up`` in :data:`PREVIOUS_TURNS` steps,
+    each set with the model's centre over the (K ≥ 1, 3) ``standing`` points' mean and its
+    lowest point at their lowest (env frame, metres)."""
     mean, lowest = standing.mean(axis=0), np.min(standing @ up)
     out = []
     for k in range(PREVIOUS_TURNS):
         turn = rotation_about_unit_axis(up, 2.0 * np.pi * k / PREVIOUS_TURNS)
-        r = turn @ inputs.previous[:3, :3]
+        r = turn @ rotation
         across = mean - r @ model.centre_object
         across -= (across @ up) * up
         lift = float(lowest - np.min(model.points @ r.T @ up))
         out.append(make_rigid(r, across + lift * up))
     return out
+
+
+def previous_on_cluster(model: PreparedModel, inputs: PoseInputs, standing: Points) -> list[Mat4]:
+    """The previous pose's orientation set on the (K, 3) ``standing`` cluster points and
+    turned about the up axis (:func:`_turned_on_cluster`): where a moved object, slid or
+    carried and set down on the same face, now stands (the previous pose itself lies where
+    it stood before). [] without a previous pose or standing points."""
+    if inputs.previous is None or len(standing) == 0:
+        return []
+    return _turned_on_cluster(model, inputs.previous[:3, :3], inputs.up, standing)
+
+
+def upright_on_cluster(model: PreparedModel, inputs: PoseInputs, standing: Points) -> list[Mat4]:
+    """The model standing on its library up (``model.up_object`` turned onto ``inputs.up``)
+    set on the (K, 3) ``standing`` cluster points and turned about the up axis
+    (:func:`_turned_on_cluster`): an object set down as it is made to stand, which the
+    descriptors can miss where its scan fits better upside down (a mug whose opening
+    stereo closed). [] without standing points."""
+    if len(standing) == 0:
+        return []
+    return _turned_on_cluster(model, rotation_onto(model.up_object, inputs.up), inputs.up, standing)
 
 
 def _ransac_candidates(pool: CandidatePool, round_: int) -> None:
